@@ -1,0 +1,31 @@
+"""Offline RL agents. Each algorithm module provides ``init``, ``update`` and a config dataclass.
+
+``ALGORITHMS`` maps the names accepted by ``eabc train --algo`` to their module and config preset.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from types import ModuleType
+
+from eabc.agents import eabc
+
+
+@dataclasses.dataclass(frozen=True)
+class Algorithm:
+    name: str
+    module: ModuleType
+    """Provides ``init(key, obs_dim, act_dim, config)`` and ``update(state, batch, key, config, max_action)``."""
+    preset: object
+    """The default config (a frozen dataclass) of this algorithm."""
+
+
+ALGORITHMS: dict[str, Algorithm] = {
+    name: Algorithm(name, eabc, preset) for name, preset in eabc.PRESETS.items()
+}
+
+
+def get_algorithm(name: str) -> Algorithm:
+    if name not in ALGORITHMS:
+        raise ValueError(f"unknown algorithm {name!r}; choose one of {', '.join(ALGORITHMS)}")
+    return ALGORITHMS[name]

@@ -1,0 +1,133 @@
+"""The offline dataset type: float32 transitions, checked on construction, and its normaliser."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import numpy as np
+
+from eabc.data import tasks
+
+FIELDS = ("observations", "actions", "rewards", "next_observations", "terminals", "timeouts")
+
+
+class DatasetError(ValueError):
+    """A dataset that cannot be used, with a message that says what to do about it."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Normalizer:
+    """Observation normalisation of the reference TD3+BC code: ``(s - mean) / (std + 1e-3)``."""
+
+    mean: np.ndarray
+    std: np.ndarray
+    """Population standard deviation plus 1e-3."""
+
+    @classmethod
+    def fit(cls, observations: np.ndarray) -> Normalizer:
+        mean = observations.mean(axis=0, dtype=np.float64).astype(np.float32)
+        std = (observations.std(axis=0, dtype=np.float64) + 1e-3).astype(np.float32)
+        return cls(mean, std)
+
+    @classmethod
+    def identity(cls, dim: int) -> Normalizer:
+        return cls(np.zeros(dim, np.float32), np.ones(dim, np.float32))
+
+    def __call__(self, observations: np.ndarray) -> np.ndarray:
+        return ((observations - self.mean) / self.std).astype(np.float32)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Dataset:
+    """Transitions ``(s, a, r, s', terminal, timeout)`` as float32/bool arrays of one length.
+
+    ``terminals`` marks a true end of an episode (no bootstrapping); ``timeouts`` marks a time-limit
+    truncation, which is not a terminal.
+    """
+
+    observations: np.ndarray
+    actions: np.ndarray
+    rewards: np.ndarray
+    next_observations: np.ndarray
+    terminals: np.ndarray
+    timeouts: np.ndarray
+    name: str = "dataset"
+    env_id: str | None = None
+    """Gymnasium id of the environment the data came from (for evaluation)."""
+    ref_min_score: float | None = None
+    """Return of a random policy, for normalised scores."""
+    ref_max_score: float | None = None
+    """Return of an expert policy, for normalised scores."""
+    metadata: dict[str, Any] = dataclasses.field(default_factory=dict)
+
+    def __post_init__(self):
+        set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 (frozen dataclass)
+        for key in ("observations", "actions", "next_observations"):
+            set_(key, _as_2d(np.asarray(getattr(self, key), np.float32), key, self.name))
+        set_("rewards", np.asarray(self.rewards, np.float32).reshape(-1))
+        for key in ("terminals", "timeouts"):
+            set_(key, np.asarray(getattr(self, key)).reshape(-1).astype(bool))
+        n = len(self.observations)
+        if n == 0:
+            raise DatasetError(f"{self.name}: the dataset is empty")
+        lengths = {key: len(getattr(self, key)) for key in FIELDS}
+        if len(set(lengths.values())) != 1:
+            raise DatasetError(
+                f"{self.name}: fields have different lengths {lengths}; every field needs one row "
+                "per transition"
+            )
+        if self.next_observations.shape[1] != self.observations.shape[1]:
+            raise DatasetError(
+                f"{self.name}: next_observations have dim {self.next_observations.shape[1]} but "
+                f"observations have dim {self.observations.shape[1]}"
+            )
+        for key in ("observations", "actions", "rewards", "next_observations"):
+            values = getattr(self, key)
+            bad = ~np.isfinite(values)
+            if bad.any():
+                rows = np.unique(np.nonzero(bad)[0])
+                raise DatasetError(
+                    f"{self.name}: {key} holds {bad.sum()} NaN/inf values (first at rows "
+                    f"{rows[:5].tolist()}); clean or drop those transitions first"
+                )
+
+    @property
+    def size(self) -> int:
+        return len(self.observations)
+
+    @property
+    def obs_dim(self) -> int:
+        return self.observations.shape[1]
+
+    @property
+    def act_dim(self) -> int:
+        return self.actions.shape[1]
+
+    def episode_returns(self) -> np.ndarray:
+        """Undiscounted return of every episode (an episode ends at a terminal or a timeout)."""
+        ends = self.terminals | self.timeouts
+        ends[-1] = True
+        episode = np.concatenate([[0], np.cumsum(ends)[:-1]])
+        return np.bincount(episode, weights=self.rewards).astype(np.float64)
+
+    def normalized_score(self, episode_return: float) -> float | None:
+        """D4RL-normalised score of a return, or None without reference returns."""
+        if self.ref_min_score is None or self.ref_max_score is None:
+            return None
+        return tasks.normalized_score(episode_return, self.ref_min_score, self.ref_max_score)
+
+
+def _as_2d(array: np.ndarray, key: str, name: str) -> np.ndarray:
+    if array.ndim == 1:
+        return array[:, None]
+    if array.ndim != 2:
+        raise DatasetError(f"{name}: {key} must be [N, dim], got shape {array.shape}")
+    return array
+
+
+def concatenate(datasets: list[Dataset], name: str) -> Dataset:
+    """Stack datasets of the same environment (e.g. medium + expert = medium-expert)."""
+    first = datasets[0]
+    fields = {k: np.concatenate([getattr(d, k) for d in datasets]) for k in FIELDS}
+    return dataclasses.replace(first, **fields, name=name)

@@ -1,0 +1,166 @@
+"""Reading datasets: D4RL-layout HDF5 files, plain ``.npz`` files and local Minari datasets.
+
+:func:`load_dataset` takes whatever a user types after ``--dataset``: a file path, ``minari:ID`` (or a
+Minari id that exists locally), or a built-in name such as ``hopper-random`` that is made on first use.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from eabc.data import tasks
+from eabc.data.dataset import Dataset, DatasetError
+
+REQUIRED = ("observations", "actions", "rewards", "terminals")
+
+
+def load_dataset(source: str | os.PathLike, cache_dir: str | os.PathLike | None = None) -> Dataset:
+    """Load a dataset from a path, a Minari id or a built-in name (see module docstring)."""
+    text = str(source)
+    path = Path(text).expanduser()
+    if path.suffix in (".hdf5", ".h5", ".npz") or path.exists():
+        return load_file(path)
+    if text.startswith("minari:"):
+        return load_minari(text.removeprefix("minari:"))
+    from eabc.data import generate  # noqa: PLC0415 (generation pulls in gymnasium)
+
+    if text in generate.builtin_names():
+        return generate.load_or_make(text, cache_dir=cache_dir)
+    if "/" in text and _minari_has(text):
+        return load_minari(text)
+    raise DatasetError(
+        f"unknown dataset {text!r}: it is not a file, not a local Minari dataset and not a built-in "
+        f"name. Built-in names: {', '.join(generate.builtin_names())}. For a file give its path "
+        "(.hdf5, .h5 or .npz); for Minari use minari:ID."
+    )
+
+
+def load_file(path: str | os.PathLike) -> Dataset:
+    path = Path(path).expanduser()
+    if not path.exists():
+        raise DatasetError(f"dataset file {path} does not exist; check the path")
+    if path.suffix == ".npz":
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {key: data[key] for key in data.files}
+        attrs = {k: arrays.pop(k).item() for k in list(arrays) if arrays[k].ndim == 0}
+    elif path.suffix in (".hdf5", ".h5"):
+        arrays, attrs = _read_hdf5(path)
+    else:
+        raise DatasetError(f"{path}: unsupported file type {path.suffix!r}; use .hdf5, .h5 or .npz")
+    return from_arrays(arrays, attrs, default_name=path.stem)
+
+
+def _read_hdf5(path: Path) -> tuple[dict[str, np.ndarray], dict]:
+    import h5py  # noqa: PLC0415
+
+    try:
+        with h5py.File(path, "r") as f:
+            keys = [k for k in (*REQUIRED, "timeouts", "next_observations") if k in f]
+            arrays = {k: f[k][()] for k in keys}
+            attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
+    except OSError as error:
+        raise DatasetError(f"{path}: not a readable HDF5 file ({error})") from error
+    return arrays, attrs
+
+
+def from_arrays(arrays: dict[str, np.ndarray], attrs: dict, default_name: str) -> Dataset:
+    """Build a dataset from D4RL-style arrays; derive ``next_observations`` when they are absent."""
+    name = str(attrs.get("name", default_name))
+    missing = [k for k in REQUIRED if k not in arrays]
+    if missing:
+        raise DatasetError(
+            f"{name}: missing keys {missing}; a dataset needs {list(REQUIRED)} and may have "
+            "timeouts and next_observations"
+        )
+    n = len(arrays["observations"])
+    for key in ("actions", "rewards", "terminals", "timeouts", "next_observations"):
+        if key in arrays and len(arrays[key]) != n:
+            raise DatasetError(
+                f"{name}: {key} has {len(arrays[key])} rows but observations have {n}; every field "
+                "needs one row per transition"
+            )
+    arrays = dict(arrays)
+    arrays.setdefault("timeouts", np.zeros(n, bool))
+    if "next_observations" not in arrays:
+        arrays = _with_next_observations(arrays)
+    task = tasks.parse_task(name)
+    env = tasks.ENVS.get(task[0]) if task else None
+    metadata = json.loads(attrs["metadata"]) if "metadata" in attrs else {}
+    return Dataset(
+        **{k: arrays[k] for k in (*REQUIRED, "timeouts", "next_observations")},
+        name=name,
+        env_id=str(attrs.get("env_id", env.env_id if env else "")) or None,
+        ref_min_score=_float(attrs.get("ref_min_score", env.ref_min_score if env else None)),
+        ref_max_score=_float(attrs.get("ref_max_score", env.ref_max_score if env else None)),
+        metadata=metadata,
+    )
+
+
+def _with_next_observations(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """D4RL's ``qlearning_dataset``: ``s'`` is the next row; a timeout step has no ``s'`` and is dropped."""
+    keep = ~np.asarray(arrays["timeouts"], bool)
+    keep[-1] = False
+    out = {k: np.asarray(v)[keep] for k, v in arrays.items()}
+    out["next_observations"] = np.asarray(arrays["observations"])[1:][keep[:-1]]
+    return out
+
+
+def _float(value) -> float | None:
+    return None if value is None else float(value)
+
+
+def save_npz(dataset: Dataset, path: str | os.PathLike) -> None:
+    """Write a dataset as a plain ``.npz`` (no pickled objects) that :func:`load_file` reads back."""
+    attrs = {"name": dataset.name, "env_id": dataset.env_id or ""}
+    if dataset.ref_min_score is not None:
+        attrs |= {"ref_min_score": dataset.ref_min_score, "ref_max_score": dataset.ref_max_score}
+    arrays = {k: getattr(dataset, k) for k in ("observations", "actions", "rewards", "terminals")}
+    arrays |= {"timeouts": dataset.timeouts, "next_observations": dataset.next_observations}
+    np.savez(path, **arrays, **{k: np.asarray(v) for k, v in attrs.items()})
+
+
+def _minari_has(dataset_id: str) -> bool:
+    try:
+        import minari  # noqa: PLC0415
+    except ImportError:
+        return False
+    return dataset_id in minari.list_local_datasets()
+
+
+def load_minari(dataset_id: str) -> Dataset:
+    """A Minari dataset from the local Minari path (never downloads)."""
+    import minari  # noqa: PLC0415
+
+    if dataset_id not in minari.list_local_datasets():
+        raise DatasetError(
+            f"Minari dataset {dataset_id!r} is not in the local Minari path "
+            f"({minari.storage.get_dataset_path('')}); set MINARI_DATASETS_PATH or make it there first"
+        )
+    data = minari.load_dataset(dataset_id, download=False)
+    parts = {k: [] for k in ("observations", "actions", "rewards", "next_observations")}
+    terminals, timeouts = [], []
+    for episode in data.iterate_episodes():
+        if not isinstance(episode.observations, np.ndarray):
+            raise DatasetError(f"{dataset_id}: only flat Box observations are supported")
+        parts["observations"].append(episode.observations[:-1])
+        parts["next_observations"].append(episode.observations[1:])
+        parts["actions"].append(episode.actions)
+        parts["rewards"].append(episode.rewards)
+        terminals.append(episode.terminations)
+        timeouts.append(episode.truncations)
+    metadata = data.storage.metadata
+    env_spec = data.env_spec
+    return Dataset(
+        **{k: np.concatenate(v) for k, v in parts.items()},
+        terminals=np.concatenate(terminals),
+        timeouts=np.concatenate(timeouts),
+        name=dataset_id,
+        env_id=env_spec.id if env_spec is not None else None,
+        ref_min_score=_float(metadata.get("ref_min_score")),
+        ref_max_score=_float(metadata.get("ref_max_score")),
+        metadata={"source": "minari", "minari_id": dataset_id},
+    )

@@ -1,0 +1,91 @@
+"""Run logs: a CSV file (one row per log interval), TensorBoard events, and a learning-curve PNG."""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+LOG = "log.csv"
+CURVE = "curve.png"
+
+
+class RunLogger:
+    """Appends rows to ``log.csv`` and TensorBoard; on resume it drops rows after the checkpoint."""
+
+    def __init__(self, run_dir: Path, resume_step: int = 0, tensorboard: bool = True):
+        self.path = Path(run_dir) / LOG
+        self.rows: list[dict[str, float]] = []
+        if self.path.exists():
+            with open(self.path, newline="") as f:
+                self.rows = [
+                    {k: _number(v) for k, v in row.items()}
+                    for row in csv.DictReader(f)
+                    if int(float(row["step"])) <= resume_step
+                ]
+        self.writer = None
+        if tensorboard:
+            from tensorboardX import SummaryWriter  # noqa: PLC0415
+
+            self.writer = SummaryWriter(str(Path(run_dir) / "tb"), purge_step=resume_step or None)
+        self._write_all()
+
+    def log(self, row: dict[str, float]) -> None:
+        self.rows.append(row)
+        self._write_all()
+        if self.writer is not None:
+            for key, value in row.items():
+                if key != "step" and not math.isnan(value):
+                    self.writer.add_scalar(key, value, int(row["step"]))
+            self.writer.flush()
+
+    def _write_all(self) -> None:
+        """Rewrite the whole file: small (one row per 1000 steps) and never left half-written."""
+        if not self.rows:
+            return
+        columns = list(dict.fromkeys(k for row in self.rows for k in row))
+        tmp = self.path.with_name(self.path.name + ".tmp")
+        with open(tmp, "w", newline="") as f:
+            writer = csv.DictWriter(f, columns, restval="")
+            writer.writeheader()
+            writer.writerows(self.rows)
+        tmp.replace(self.path)
+
+    def close(self) -> None:
+        if self.writer is not None:
+            self.writer.close()
+
+
+def _number(text: str) -> float:
+    return float(text) if text not in ("", None) else math.nan
+
+
+def plot_curve(evaluations: list[dict[str, float]], path: Path, title: str) -> None:
+    """Normalised score (or return) against gradient steps."""
+    import matplotlib  # noqa: PLC0415
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+
+    key = "score" if evaluations and "score" in evaluations[0] else "return_mean"
+    steps = [e["step"] for e in evaluations]
+    values = [e[key] for e in evaluations]
+    spread = [e.get(f"{key.split('_', maxsplit=1)[0]}_std", 0.0) for e in evaluations]
+    fig, ax = plt.subplots(figsize=(6, 4))
+    ax.plot(steps, values, color="C0")
+    ax.fill_between(
+        steps,
+        [v - s for v, s in zip(values, spread)],
+        [v + s for v, s in zip(values, spread)],
+        color="C0",
+        alpha=0.2,
+        label="+-1 std over episodes",
+    )
+    ax.set_xlabel("gradient steps")
+    ax.set_ylabel("D4RL normalised score" if key == "score" else "return")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)

@@ -1,0 +1,349 @@
+"""The offline training loop: compiled chunks of gradient steps between evaluations.
+
+The dataset lives in device memory; every chunk of ``log_interval`` steps is one ``lax.scan`` that
+samples its own mini-batches. Between chunks the loop logs, evaluates every ``eval_interval`` steps
+and checkpoints every ``checkpoint_interval`` steps, so that ``resume`` continues bit for bit.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm.auto import tqdm
+
+from eabc import networks
+from eabc.agents import Algorithm, get_algorithm
+from eabc.agents.common import Batch
+from eabc.data import tasks
+from eabc.data.dataset import Dataset, DatasetError, Normalizer
+from eabc.data.loaders import load_dataset
+from eabc.evaluation import Evaluator, check_spaces
+from eabc.training import checkpoint
+from eabc.training.logger import CURVE, RunLogger, plot_curve
+
+CONFIG = "config.json"
+SUMMARY = "summary.json"
+FINAL_EVALUATIONS = 10
+"""The score of a run is the mean of its last 10 evaluations."""
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """How to train: data, length, evaluation and bookkeeping (the paper's protocol by default)."""
+
+    dataset: str = "hopper-random"
+    """A built-in name (hopper-random, ...), a .hdf5/.npz path, or minari:ID."""
+    algo: str = "eabc"
+    """Algorithm preset: eabc, td3bc or td3."""
+    seed: int = 0
+    """Seeds network initialisation and batch sampling; evaluation uses seed + 100."""
+    steps: int = 1_000_000
+    """Gradient steps."""
+    batch_size: int = 256
+    """Mini-batch size N."""
+    eval_interval: int = 5000
+    """Evaluate every this many gradient steps."""
+    eval_episodes: int = 10
+    """Episodes per evaluation."""
+    log_interval: int = 1000
+    """Steps per compiled chunk: log rows and progress updates come this often."""
+    checkpoint_interval: int = 5000
+    """Save a checkpoint every this many steps (a multiple of log_interval)."""
+    env: str | None = None
+    """Gymnasium id for evaluation; by default the one the dataset names."""
+    cache_dir: str | None = None
+    """Where built-in datasets are made (default $EABC_CACHE_DIR or ~/.cache/eabc)."""
+
+    def __post_init__(self):
+        for name in ("steps", "batch_size", "eval_interval", "eval_episodes", "log_interval"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        for name in ("eval_interval", "checkpoint_interval"):
+            if getattr(self, name) % self.log_interval:
+                raise ValueError(f"{name} must be a multiple of log_interval={self.log_interval}")
+
+
+def resolve_agent_config(algo: str, dataset_name: str, overrides: dict[str, Any]) -> Any:
+    """The algorithm's preset with the user's overrides; p from Table 3 when EABC's is not given."""
+    algorithm = get_algorithm(algo)
+    overrides = {k: v for k, v in overrides.items() if v is not None}
+    fields = {f.name for f in dataclasses.fields(algorithm.preset)}
+    unknown = set(overrides) - fields
+    if unknown:
+        raise ValueError(f"{algo} has no setting(s) {sorted(unknown)}; it has {sorted(fields)}")
+    if algo == "eabc" and "confidence_level" not in overrides:
+        p = tasks.default_confidence_level(tasks.parse_task(dataset_name))
+        if p is None:
+            raise ValueError(
+                f"no default confidence level p for dataset {dataset_name!r} (Table 3 covers "
+                "hopper/halfcheetah/walker2d x random/medium/medium-replay/medium-expert/expert); "
+                "pass --confidence-level P (the paper suggests p <= 0.25 for data from weak "
+                "policies and p >= 0.5 for good ones)"
+            )
+        overrides["confidence_level"] = p
+    return dataclasses.replace(algorithm.preset, **overrides)
+
+
+@dataclasses.dataclass
+class Run:
+    """Everything one training run needs; made by :func:`start` or :func:`resume`."""
+
+    run_dir: Path
+    config: TrainConfig
+    algorithm: Algorithm
+    agent_config: Any
+    dataset: Dataset
+    normalizer: Normalizer
+    evaluator: Evaluator
+    max_action: float
+    state: dict[str, Any]
+    """``agent`` (the algorithm's state), ``key``, ``evaluations`` (history), ``elapsed`` seconds
+    and ``normalizer``: everything a checkpoint holds."""
+
+    @property
+    def step(self) -> int:
+        return int(self.state["agent"].step)
+
+
+def start(
+    config: TrainConfig,
+    run_dir: str | Path,
+    agent_overrides: dict[str, Any] | None = None,
+    dataset: Dataset | None = None,
+) -> Run:
+    """Set up a new run in ``run_dir`` (which must not hold a run already)."""
+    run_dir = Path(run_dir)
+    if (run_dir / CONFIG).exists():
+        raise FileExistsError(
+            f"{run_dir} already holds a run; continue it with `eabc train --resume {run_dir}` or "
+            "choose another --run-dir"
+        )
+    dataset = dataset if dataset is not None else load_dataset(config.dataset, config.cache_dir)
+    agent_config = resolve_agent_config(config.algo, dataset.name, agent_overrides or {})
+    run = _build(run_dir, config, agent_config, dataset, state=None)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    checkpoint.save_json(
+        run_dir / CONFIG,
+        {
+            "train": dataclasses.asdict(config),
+            "agent": dataclasses.asdict(agent_config),
+            "dataset": {
+                "name": dataset.name,
+                "size": dataset.size,
+                "env_id": run.evaluator.env_id,
+                "ref_min_score": dataset.ref_min_score,
+                "ref_max_score": dataset.ref_max_score,
+            },
+            "max_action": run.max_action,
+        },
+    )
+    return run
+
+
+def resume(run_dir: str | Path, dataset: Dataset | None = None) -> Run:
+    """Reopen a run from its directory and latest checkpoint."""
+    run_dir = Path(run_dir)
+    saved = read_config(run_dir)
+    config = TrainConfig(**saved["train"])
+    algorithm = get_algorithm(config.algo)
+    agent_config = _agent_config_from_json(algorithm, saved["agent"])
+    dataset = dataset if dataset is not None else load_dataset(config.dataset, config.cache_dir)
+    if dataset.size != saved["dataset"]["size"]:
+        raise DatasetError(
+            f"{config.dataset} now has {dataset.size} transitions, but the run was trained on "
+            f"{saved['dataset']['size']}; resume needs the same data"
+        )
+    return _build(run_dir, config, agent_config, dataset, state="checkpoint")
+
+
+def read_config(run_dir: Path) -> dict:
+    path = Path(run_dir) / CONFIG
+    if not path.exists():
+        raise FileNotFoundError(f"{run_dir} is not a run directory (no {CONFIG})")
+    return json.loads(path.read_text())
+
+
+def _agent_config_from_json(algorithm: Algorithm, fields: dict) -> Any:
+    types = {f.name: f.type for f in dataclasses.fields(algorithm.preset)}
+    fields = {k: tuple(v) if isinstance(v, list) else v for k, v in fields.items() if k in types}
+    return dataclasses.replace(algorithm.preset, **fields)
+
+
+def _build(run_dir, config, agent_config, dataset, state) -> Run:
+    env_id = config.env or dataset.env_id
+    if not env_id:
+        raise DatasetError(
+            f"{dataset.name} does not say which environment it came from; pass --env GYM_ID"
+        )
+    evaluator = Evaluator(
+        env_id,
+        config.seed + 100,
+        config.eval_episodes,
+        dataset.ref_min_score,
+        dataset.ref_max_score,
+    )
+    check_spaces(evaluator.env, dataset)
+    max_action = float(evaluator.env.action_space.high[0])
+    algorithm = get_algorithm(config.algo)
+    normalizer = Normalizer.fit(dataset.observations)
+    init_key, loop_key = jax.random.split(jax.random.PRNGKey(config.seed))
+    fresh = {
+        "agent": algorithm.module.init(init_key, dataset.obs_dim, dataset.act_dim, agent_config),
+        "key": loop_key,
+        "evaluations": {},
+        "elapsed": 0.0,
+        "normalizer": {"mean": normalizer.mean, "std": normalizer.std},
+    }
+    if state == "checkpoint":
+        saved = checkpoint.load(run_dir, {**fresh, "evaluations": None})
+        fresh = {**saved, "evaluations": saved["evaluations"] or {}}
+        normalizer = Normalizer(**{k: np.asarray(v) for k, v in saved["normalizer"].items()})
+    return Run(
+        run_dir, config, algorithm, agent_config, dataset, normalizer, evaluator, max_action, fresh
+    )
+
+
+def device_data(dataset: Dataset, normalizer: Normalizer) -> Batch:
+    """The whole dataset as one device-resident batch (observations normalised once, up front)."""
+    return Batch(
+        observations=jnp.asarray(normalizer(dataset.observations)),
+        actions=jnp.asarray(dataset.actions),
+        rewards=jnp.asarray(dataset.rewards),
+        next_observations=jnp.asarray(normalizer(dataset.next_observations)),
+        dones=jnp.asarray(dataset.terminals, jnp.float32),
+    )
+
+
+@functools.partial(jax.jit, static_argnames=("update", "batch_size", "length"))
+def train_chunk(agent_state, key, data: Batch, update, batch_size: int, length: int):
+    """``length`` gradient steps in one compiled scan; batches are sampled with replacement inside."""
+    size = data.rewards.shape[0]
+
+    def step(carry, _):
+        agent_state, key = carry
+        key, sample_key, update_key = jax.random.split(key, 3)
+        index = jax.random.randint(sample_key, (batch_size,), 0, size)
+        batch = jax.tree.map(lambda x: x[index], data)
+        agent_state, metrics = update(agent_state, batch, update_key)
+        return (agent_state, key), metrics
+
+    (agent_state, key), metrics = jax.lax.scan(step, (agent_state, key), None, length=length)
+    return agent_state, key, metrics
+
+
+def summarize_metrics(metrics: dict[str, np.ndarray]) -> dict[str, float]:
+    """Means over a chunk; actor metrics only over the steps that updated the actor."""
+    actor_steps = metrics.pop("actor_updated", None)
+    critic_keys = {"critic_loss", "q_mean", "q_ensemble_std", "target_mean"}
+    out = {}
+    for key, values in metrics.items():
+        if actor_steps is not None and key not in critic_keys and actor_steps.any():
+            values = values[actor_steps.astype(bool)]
+        out[key] = float(np.mean(values))
+    return out
+
+
+def policy_fn(run: Run):
+    """A NumPy policy from raw observations to actions, normalisation inside."""
+    act = networks.numpy_actor(jax.device_get(run.state["agent"].actor), run.max_action)
+    return lambda obs: act(run.normalizer(obs))
+
+
+def evaluate(run: Run) -> dict[str, float]:
+    return run.evaluator(policy_fn(run))
+
+
+def train(run: Run, progress: bool = True) -> dict[str, Any]:
+    """Train ``run`` to ``config.steps`` from wherever it is; returns the summary."""
+    config, run_dir = run.config, run.run_dir
+    data = device_data(run.dataset, run.normalizer)
+    update = functools.partial(
+        run.algorithm.module.update, config=run.agent_config, max_action=run.max_action
+    )
+    logger = RunLogger(run_dir, resume_step=run.step)
+    bar = tqdm(
+        total=config.steps,
+        initial=run.step,
+        unit="step",
+        disable=not progress,
+        desc=f"{config.algo} {run.dataset.name}",
+        dynamic_ncols=True,
+    )
+    try:
+        while run.step < config.steps:
+            length = min(config.log_interval, config.steps - run.step)
+            started = time.perf_counter()
+            agent, key, metrics = train_chunk(
+                run.state["agent"], run.state["key"], data, update, config.batch_size, length
+            )
+            metrics = summarize_metrics(jax.device_get(metrics))
+            seconds = time.perf_counter() - started
+            run.state = {**run.state, "agent": agent, "key": key}
+            run.state["elapsed"] += seconds
+            row = {
+                "step": run.step,
+                "wall_time": run.state["elapsed"],
+                "steps_per_s": length / seconds,
+            }
+            row |= metrics
+            if run.step % config.eval_interval == 0 or run.step == config.steps:
+                result = evaluate(run)
+                run.state["evaluations"][str(run.step)] = result
+                row |= result
+                _plot(run)
+            logger.log(row)
+            if run.step % config.checkpoint_interval == 0 or run.step == config.steps:
+                checkpoint.save(run_dir, run.state)
+            bar.update(length)
+            bar.set_postfix(_postfix(row, run.state["evaluations"]), refresh=False)
+    finally:
+        bar.close()
+        logger.close()
+    summary = summarize_run(run)
+    checkpoint.save_json(run_dir / SUMMARY, summary)
+    return summary
+
+
+def _postfix(row, evaluations) -> dict[str, str]:
+    out = {"steps/s": f"{row['steps_per_s']:.0f}"}
+    if evaluations:
+        last = evaluations[max(evaluations, key=int)]
+        out["score" if "score" in last else "return"] = (
+            f"{last.get('score', last['return_mean']):.1f}"
+        )
+    return out
+
+
+def _plot(run: Run) -> None:
+    evaluations = [
+        {"step": int(s), **e}
+        for s, e in sorted(run.state["evaluations"].items(), key=lambda kv: int(kv[0]))
+    ]
+    plot_curve(evaluations, run.run_dir / CURVE, f"{run.config.algo} on {run.dataset.name}")
+
+
+def summarize_run(run: Run) -> dict[str, Any]:
+    evaluations = [run.state["evaluations"][s] for s in sorted(run.state["evaluations"], key=int)]
+    last = evaluations[-FINAL_EVALUATIONS:]
+    summary: dict[str, Any] = {
+        "algo": run.config.algo,
+        "dataset": run.dataset.name,
+        "seed": run.config.seed,
+        "steps": run.step,
+        "wall_time_s": run.state["elapsed"],
+        "steps_per_s": run.step / max(run.state["elapsed"], 1e-9),
+        "evaluations": len(evaluations),
+    }
+    if last:
+        summary["final_return"] = float(np.mean([e["return_mean"] for e in last]))
+        if "score" in last[0]:
+            summary["final_score"] = float(np.mean([e["score"] for e in last]))
+    return summary
