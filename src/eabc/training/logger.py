@@ -18,11 +18,8 @@ class RunLogger:
         self.rows: list[dict[str, float]] = []
         if self.path.exists():
             with open(self.path, newline="") as f:
-                self.rows = [
-                    {k: _number(v) for k, v in row.items()}
-                    for row in csv.DictReader(f)
-                    if int(float(row["step"])) <= resume_step
-                ]
+                rows = [{k: _number(v) for k, v in row.items()} for row in csv.DictReader(f)]
+            self.rows = [{**r, "step": int(r["step"])} for r in rows if r["step"] <= resume_step]
         self.writer = None
         if tensorboard:
             from tensorboardX import SummaryWriter  # noqa: PLC0415

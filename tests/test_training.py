@@ -1,0 +1,128 @@
+"""The training loop: determinism, exact resume after a kill, learning, checkpoints and the policy API."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import numpy as np
+import pytest
+
+from eabc import load_policy
+from eabc.training import checkpoint, trainer
+from eabc.training.trainer import TrainConfig
+
+SMALL = dict(
+    dataset="pendulum-swingup",
+    steps=600,
+    log_interval=100,
+    eval_interval=300,
+    checkpoint_interval=200,
+    eval_episodes=1,
+    env="Pendulum-v1",
+)
+AGENT = dict(num_critics=3, confidence_level=0.5, hidden_dims=(64, 64))
+
+
+def params(run):
+    return jax.device_get((run.state["agent"].actor, run.state["agent"].critic))
+
+
+def assert_same(a, b):
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+        np.testing.assert_array_equal(x, y)
+
+
+def start(tmp_path, name, dataset, **overrides):
+    config = TrainConfig(**{**SMALL, **overrides})
+    return trainer.start(config, tmp_path / name, AGENT, dataset=dataset)
+
+
+def test_same_seed_same_result_and_other_seed_differs(tmp_path, pendulum_dataset):
+    runs = []
+    for name, seed in [("a", 0), ("b", 0), ("c", 1)]:
+        run = start(tmp_path, name, pendulum_dataset, seed=seed, steps=200)
+        trainer.train(run, progress=False)
+        runs.append(params(run))
+    assert_same(runs[0], runs[1])
+    assert not np.array_equal(runs[0][0]["w0"], runs[2][0]["w0"])
+
+
+class Killed(Exception):
+    pass
+
+
+def test_killed_and_resumed_run_ends_exactly_like_an_uninterrupted_one(
+    tmp_path, pendulum_dataset, monkeypatch
+):
+    straight = start(tmp_path, "straight", pendulum_dataset)
+    summary = trainer.train(straight, progress=False)
+
+    # Kill the second run after step 500 has been logged: its last checkpoint is at step 400.
+    killed = start(tmp_path, "killed", pendulum_dataset)
+    log = trainer.RunLogger.log
+
+    def log_then_die(self, row):
+        log(self, row)
+        if row["step"] == 500:
+            raise Killed
+
+    monkeypatch.setattr(trainer.RunLogger, "log", log_then_die)
+    with pytest.raises(Killed):
+        trainer.train(killed, progress=False)
+    monkeypatch.undo()
+
+    resumed = trainer.resume(tmp_path / "killed", dataset=pendulum_dataset)
+    assert resumed.step == 400
+    resumed_summary = trainer.train(resumed, progress=False)
+    assert_same(params(straight), params(resumed))
+    assert_same(
+        jax.device_get(straight.state["agent"].critic_opt),
+        jax.device_get(resumed.state["agent"].critic_opt),
+    )
+    assert resumed_summary["final_score"] == summary["final_score"]
+    steps = [
+        int(line.split(",")[0])
+        for line in (tmp_path / "killed/log.csv").read_text().split("\n")[1:]
+        if line
+    ]
+    assert steps == list(range(100, 601, 100)), "log rows after the checkpoint must not repeat"
+
+
+def test_checkpoint_is_msgpack_and_policy_api_matches_training(tmp_path, pendulum_dataset):
+    run = start(tmp_path, "run", pendulum_dataset, steps=200)
+    trainer.train(run, progress=False)
+    raw = (tmp_path / "run" / checkpoint.CHECKPOINT).read_bytes()
+    assert raw[0] & 0xF0 == 0x80 or raw[0] in (0xDE, 0xDF), "a msgpack map, not a pickle"
+    policy = load_policy(tmp_path / "run")
+    obs = pendulum_dataset.observations[:5]
+    expected = trainer.policy_fn(run)(obs)
+    np.testing.assert_allclose(np.stack([policy(o) for o in obs]), expected, rtol=1e-6)
+    for name in ("config.json", "log.csv", "curve.png", "summary.json"):
+        assert (tmp_path / "run" / name).exists()
+
+
+def test_existing_run_dir_is_not_overwritten(tmp_path, pendulum_dataset):
+    start(tmp_path, "run", pendulum_dataset)
+    with pytest.raises(FileExistsError, match="--resume"):
+        start(tmp_path, "run", pendulum_dataset)
+
+
+def test_learning_lifts_the_score_well_above_the_untrained_policy(tmp_path, pendulum_dataset):
+    config = TrainConfig(
+        **{
+            **SMALL,
+            "steps": 3000,
+            "eval_interval": 1000,
+            "checkpoint_interval": 1000,
+            "eval_episodes": 5,
+        }
+    )
+    run = trainer.start(
+        config, tmp_path / "learn", {**AGENT, "confidence_level": 1.0}, dataset=pendulum_dataset
+    )
+    untrained = trainer.evaluate(run)["score"]
+    summary = trainer.train(run, progress=False)
+    last = run.state["evaluations"]["3000"]["score"]
+    assert untrained < 30
+    assert last > untrained + 40, (untrained, last, summary)
