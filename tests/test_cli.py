@@ -1,0 +1,83 @@
+"""The command line end to end: train, resume, evaluate, data commands and error messages."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from eabc.cli import main
+from eabc.data.loaders import save_npz
+
+
+@pytest.fixture
+def npz(tmp_path, pendulum_dataset):
+    path = tmp_path / "pendulum.npz"
+    save_npz(pendulum_dataset, path)
+    return path
+
+
+def test_train_then_resume_then_evaluate(tmp_path, npz, capsys):
+    run_dir = tmp_path / "run"
+    common = [
+        "--dataset",
+        str(npz),
+        "--log-interval",
+        "100",
+        "--eval-interval",
+        "100",
+        "--checkpoint-interval",
+        "100",
+        "--eval-episodes",
+        "1",
+        "--num-critics",
+        "3",
+        "--confidence-level",
+        "0.5",
+        "--run-dir",
+        str(run_dir),
+        "--no-progress",
+    ]
+    main(["train", *common, "--steps", "200"])
+    first = json.loads(capsys.readouterr().out)
+    assert first["steps"] == 200 and first["evaluations"] == 2 and "final_score" in first
+    config = json.loads((run_dir / "config.json").read_text())
+    assert config["agent"]["num_critics"] == 3 and config["agent"]["confidence_level"] == 0.5
+    assert config["dataset"]["env_id"] == "Pendulum-v1"
+
+    # Re-running into the same directory is refused with a hint; --resume continues (to its steps).
+    with pytest.raises(SystemExit, match="--resume"):
+        main(["train", *common, "--steps", "200"])
+    main(["train", "--resume", str(run_dir), "--no-progress"])
+    assert json.loads(capsys.readouterr().out)["steps"] == 200
+
+    main(["evaluate", str(run_dir), "--episodes", "2"])
+    result = json.loads(capsys.readouterr().out)
+    assert result["step"] == 200 and "score" in result
+
+
+def test_errors_are_one_clear_line(tmp_path, capsys):
+    with pytest.raises(SystemExit, match="error: dataset file .*missing.hdf5 does not exist"):
+        main(
+            ["train", "--dataset", str(tmp_path / "missing.hdf5"), "--run-dir", str(tmp_path / "r")]
+        )
+    with pytest.raises(SystemExit):
+        main(["train", "--eval-interval", "150", "--log-interval", "100"])
+    err = " ".join(capsys.readouterr().err.split())
+    assert "eval_interval must be a multiple" in err
+
+
+def test_confidence_level_is_required_for_unknown_data(tmp_path, npz):
+    with pytest.raises(SystemExit, match="pass --confidence-level"):
+        main(["train", "--dataset", str(npz), "--run-dir", str(tmp_path / "r"), "--no-progress"])
+
+
+def test_data_commands(tmp_path, capsys):
+    main(["data", "make", "hopper-random", "--size", "600", "--cache-dir", str(tmp_path)])
+    assert "hopper-random.hdf5" in capsys.readouterr().out
+    main(["data", "list", "--cache-dir", str(tmp_path)])
+    listing = capsys.readouterr().out
+    assert "hopper-random" in listing and "walker2d-expert" in listing
+    main(["data", "info", "hopper-random", "--cache-dir", str(tmp_path)])
+    info = json.loads(capsys.readouterr().out)
+    assert info["transitions"] == 600 and info["episodes"] > 5 and info["env_id"] == "Hopper-v4"

@@ -1,0 +1,195 @@
+"""Datasets: loaders round-trip, D4RL conventions, generation, and clear errors on bad input."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import h5py
+import numpy as np
+import pytest
+
+from eabc.data import generate, tasks
+from eabc.data.dataset import Dataset, DatasetError, Normalizer
+from eabc.data.loaders import load_dataset, load_file, save_npz
+from eabc.evaluation import check_spaces, make_env
+from eabc.training.trainer import resolve_agent_config
+
+
+def small(n=50, obs=3, act=2, seed=0, **kw):
+    rng = np.random.default_rng(seed)
+    arrays = dict(
+        observations=rng.normal(size=(n, obs)),
+        actions=rng.uniform(-1, 1, size=(n, act)),
+        rewards=rng.normal(size=n),
+        next_observations=rng.normal(size=(n, obs)),
+        terminals=np.zeros(n, bool),
+        timeouts=np.zeros(n, bool),
+    )
+    return {**arrays, **kw}
+
+
+def test_npz_and_hdf5_round_trip(tmp_path, pendulum_dataset):
+    save_npz(pendulum_dataset, tmp_path / "d.npz")
+    generate.save_hdf5(pendulum_dataset, tmp_path / "d.hdf5")
+    for path in (tmp_path / "d.npz", tmp_path / "d.hdf5"):
+        loaded = load_dataset(path)
+        for key in (
+            "observations",
+            "actions",
+            "rewards",
+            "next_observations",
+            "terminals",
+            "timeouts",
+        ):
+            np.testing.assert_array_equal(getattr(loaded, key), getattr(pendulum_dataset, key))
+        assert (
+            loaded.env_id == "Pendulum-v1"
+            and loaded.ref_max_score == pendulum_dataset.ref_max_score
+        )
+
+
+def test_d4rl_file_without_next_observations_follows_qlearning_dataset(tmp_path):
+    obs = np.arange(12, dtype=np.float32).reshape(6, 2)
+    with h5py.File(tmp_path / "hopper_medium-v2.hdf5", "w") as f:
+        f["observations"] = obs
+        f["actions"] = np.zeros((6, 3), np.float32)
+        f["rewards"] = np.arange(6, dtype=np.float32)
+        f["terminals"] = np.array([0, 1, 0, 0, 0, 0], bool)
+        f["timeouts"] = np.array([0, 0, 0, 1, 0, 0], bool)
+    data = load_file(tmp_path / "hopper_medium-v2.hdf5")
+    # Row 3 is a timeout (its s' is unknown) and row 5 is the last row: both dropped.
+    np.testing.assert_array_equal(data.rewards, [0, 1, 2, 4])
+    np.testing.assert_array_equal(data.next_observations, obs[[1, 2, 3, 5]])
+    np.testing.assert_array_equal(data.terminals, [0, 1, 0, 0])
+    assert data.env_id == "Hopper-v4" and data.ref_min_score == tasks.ENVS["hopper"].ref_min_score
+
+
+def test_normalizer_is_td3bc_convention():
+    obs = np.random.default_rng(0).normal(3.0, 2.0, size=(1000, 4)).astype(np.float32)
+    norm = Normalizer.fit(obs)
+    np.testing.assert_allclose(norm.std, obs.std(0) + 1e-3, rtol=1e-5)
+    np.testing.assert_allclose(
+        norm(obs), (obs - obs.mean(0)) / (obs.std(0) + 1e-3), rtol=1e-4, atol=1e-5
+    )
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (dict(rewards=np.ones(49)), "different lengths"),
+        (dict(next_observations=np.zeros((50, 4))), "next_observations have dim 4"),
+        (dict(actions=np.zeros((50, 2, 2))), r"must be \[N, dim\]"),
+        (dict(observations=np.full((50, 3), np.nan)), "NaN/inf"),
+        (dict(rewards=np.r_[np.ones(49), np.inf]), "rows \\[49\\]"),
+    ],
+)
+def test_bad_arrays_raise_clear_errors(change, message):
+    with pytest.raises(DatasetError, match=message):
+        Dataset(**small(**change))
+
+
+def test_missing_file_keys_and_unknown_names(tmp_path):
+    with pytest.raises(DatasetError, match="does not exist"):
+        load_dataset(tmp_path / "nope.hdf5")
+    np.savez(tmp_path / "partial.npz", observations=np.zeros((5, 2)), actions=np.zeros((5, 1)))
+    with pytest.raises(DatasetError, match=r"missing keys \['rewards', 'terminals'\]"):
+        load_dataset(tmp_path / "partial.npz")
+    np.savez(tmp_path / "short.npz", **small(terminals=np.zeros(10)))
+    with pytest.raises(DatasetError, match="terminals has 10 rows but observations have 50"):
+        load_dataset(tmp_path / "short.npz")
+    (tmp_path / "junk.hdf5").write_text("not hdf5")
+    with pytest.raises(DatasetError, match="not a readable HDF5"):
+        load_dataset(tmp_path / "junk.hdf5")
+    with pytest.raises(DatasetError, match="unknown dataset 'hoper-medium'.*hopper-medium"):
+        load_dataset("hoper-medium")
+
+
+def test_environment_must_match_the_data(pendulum_dataset):
+    env = make_env("Hopper-v4")
+    with pytest.raises(DatasetError, match="observations have dim 3 but Hopper-v4"):
+        check_spaces(env, pendulum_dataset)
+    wide = dataclasses.replace(pendulum_dataset, actions=pendulum_dataset.actions * 3)
+    with pytest.raises(DatasetError, match="outside Pendulum-v1's bounds"):
+        check_spaces(make_env("Pendulum-v1"), wide)
+    with pytest.raises(DatasetError, match="cannot make evaluation environment"):
+        make_env("NoSuchEnv-v0")
+
+
+def test_random_dataset_is_deterministic_and_d4rl_shaped(tmp_path):
+    a = generate.make("hopper-random", tmp_path / "a.hdf5", seed=3, size=1500)
+    b = generate.make("hopper-random", tmp_path / "b.hdf5", seed=3, size=1500)
+    c = generate.make("hopper-random", tmp_path / "c.hdf5", seed=4, size=1500)
+    da, db, dc = load_file(a), load_file(b), load_file(c)
+    np.testing.assert_array_equal(da.observations, db.observations)
+    np.testing.assert_array_equal(da.actions, db.actions)
+    assert not np.array_equal(da.actions, dc.actions)
+    with h5py.File(a) as f:
+        assert f["observations"].dtype == np.float32 and f["terminals"].dtype == bool
+        assert f["observations"].shape == (1500, 11) and f["actions"].shape == (1500, 3)
+    assert da.terminals.sum() > 10, "random hopper falls over: episodes end in terminals"
+    ends = np.flatnonzero(da.terminals | da.timeouts)
+    starts = ends[:-1] + 1
+    # A new episode starts after every end: s' of the end row is not the next row's s.
+    assert not np.allclose(da.next_observations[ends[:-1]], da.observations[starts])
+    inner = np.setdiff1d(np.arange(1499), ends)
+    np.testing.assert_array_equal(da.next_observations[inner], da.observations[inner + 1])
+    assert da.name == "hopper-random" and da.metadata["seed"] == 3
+
+
+def test_built_in_name_is_made_once_then_cached(tmp_path, monkeypatch):
+    monkeypatch.setattr(generate, "DATASET_SIZE", 800)
+    first = load_dataset("walker2d-random", cache_dir=tmp_path)
+    mtime = generate.dataset_path("walker2d-random", tmp_path).stat().st_mtime_ns
+    second = load_dataset("walker2d-random", cache_dir=tmp_path)
+    assert generate.dataset_path("walker2d-random", tmp_path).stat().st_mtime_ns == mtime
+    np.testing.assert_array_equal(first.actions, second.actions)
+    with pytest.raises(DatasetError, match="behaviour policy"):
+        load_dataset("walker2d-medium", cache_dir=tmp_path)
+
+
+def test_confidence_level_defaults_from_table_3():
+    assert tasks.parse_task("hopper_medium_replay-v2.hdf5") == ("hopper", "medium-replay")
+    assert tasks.parse_task("walker2d-medium-expert") == ("walker2d", "medium-expert")
+    assert resolve_agent_config("eabc", "walker2d-random", {}).confidence_level == 0.95
+    assert resolve_agent_config("eabc", "halfcheetah-medium", {}).confidence_level == 0.0
+    assert (
+        resolve_agent_config("eabc", "my-data", {"confidence_level": 0.3}).confidence_level == 0.3
+    )
+    assert resolve_agent_config("td3bc", "my-data", {}).num_critics == 2
+    with pytest.raises(ValueError, match="pass --confidence-level"):
+        resolve_agent_config("eabc", "my-data", {})
+    with pytest.raises(ValueError, match="unknown algorithm"):
+        resolve_agent_config("sac", "hopper-random", {})
+
+
+def test_minari_dataset_loads_from_the_local_path(tmp_path, monkeypatch):
+    import minari
+    from minari.data_collector import EpisodeBuffer
+
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path))
+    rng = np.random.default_rng(0)
+    episodes = []
+    for length in (5, 7):
+        obs = rng.normal(size=(length + 1, 3)).astype(np.float32)
+        episodes.append(
+            EpisodeBuffer(
+                observations=obs,
+                actions=rng.uniform(-2, 2, size=(length, 1)).astype(np.float32),
+                rewards=rng.normal(size=length),
+                terminations=np.zeros(length, bool),
+                truncations=np.r_[np.zeros(length - 1, bool), True],
+            )
+        )
+    minari.create_dataset_from_buffers(
+        "test/pendulum/tiny-v0",
+        episodes,
+        env="Pendulum-v1",
+        ref_min_score=-1200.0,
+        ref_max_score=-130.0,
+    )
+    data = load_dataset("minari:test/pendulum/tiny-v0")
+    assert data.size == 12 and data.env_id == "Pendulum-v1" and data.ref_min_score == -1200.0
+    np.testing.assert_array_equal(data.next_observations[:5], episodes[0].observations[1:])
+    assert data.timeouts.sum() == 2
+    with pytest.raises(DatasetError, match="not in the local Minari path"):
+        load_dataset("minari:test/pendulum/other-v0")
