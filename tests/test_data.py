@@ -5,8 +5,10 @@ from __future__ import annotations
 import dataclasses
 
 import h5py
+import minari
 import numpy as np
 import pytest
+from minari.data_collector import EpisodeBuffer
 
 from eabc.data import generate, tasks
 from eabc.data.dataset import Dataset, DatasetError, Normalizer
@@ -163,9 +165,6 @@ def test_confidence_level_defaults_from_table_3():
 
 
 def test_minari_dataset_loads_from_the_local_path(tmp_path, monkeypatch):
-    import minari
-    from minari.data_collector import EpisodeBuffer
-
     monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path))
     rng = np.random.default_rng(0)
     episodes = []
