@@ -6,17 +6,16 @@ from pathlib import Path
 
 import numpy as np
 
+from eabc import networks
 from eabc.data.dataset import Normalizer
 from eabc.training import checkpoint
-from eabc.training.trainer import read_config
+from eabc.training.checkpoint import read_config
 
 
 class Policy:
     """A deterministic policy from raw observations to actions (normalisation inside). NumPy only."""
 
     def __init__(self, actor: dict[str, np.ndarray], normalizer: Normalizer, max_action: float):
-        from eabc import networks  # noqa: PLC0415
-
         self.normalizer = normalizer
         self._act = networks.numpy_actor(actor, max_action)
 
@@ -27,8 +26,8 @@ class Policy:
 def load_policy(run_dir: str | Path) -> Policy:
     """The policy of the latest checkpoint in ``run_dir``.
 
-    The observation normaliser is refitted from the run's dataset statistics stored in the
-    checkpoint, so the callable takes raw environment observations.
+    The observation normaliser stored in the checkpoint is applied inside, so the callable takes
+    raw environment observations.
     """
     run_dir = Path(run_dir)
     config = read_config(run_dir)

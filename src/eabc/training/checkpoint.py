@@ -12,6 +12,7 @@ import jax
 import numpy as np
 
 CHECKPOINT = "checkpoint.msgpack"
+CONFIG = "config.json"
 
 
 def atomic_write(path: Path, data: bytes) -> None:
@@ -50,3 +51,11 @@ def _plain(value):
     if isinstance(value, np.generic | np.ndarray):
         return value.tolist()
     raise TypeError(f"cannot write {type(value)} to JSON")
+
+
+def read_config(run_dir: Path) -> dict:
+    """A run directory's resolved configuration."""
+    path = Path(run_dir) / CONFIG
+    if not path.exists():
+        raise FileNotFoundError(f"{run_dir} is not a run directory (no {CONFIG})")
+    return json.loads(path.read_text())

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import json
 import time
 from pathlib import Path
 from typing import Any
@@ -19,17 +18,17 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from eabc import networks
 from eabc.agents import Algorithm, get_algorithm
 from eabc.agents.common import Batch
 from eabc.data import tasks
 from eabc.data.dataset import Dataset, DatasetError, Normalizer
 from eabc.data.loaders import load_dataset
 from eabc.evaluation import Evaluator, check_spaces
+from eabc.policy import Policy
 from eabc.training import checkpoint
+from eabc.training.checkpoint import CONFIG, read_config
 from eabc.training.logger import CURVE, RunLogger, plot_curve
 
-CONFIG = "config.json"
 SUMMARY = "summary.json"
 FINAL_EVALUATIONS = 10
 """The score of a run is the mean of its last 10 evaluations."""
@@ -164,16 +163,9 @@ def resume(run_dir: str | Path, dataset: Dataset | None = None) -> Run:
     return _build(run_dir, config, agent_config, dataset, state="checkpoint")
 
 
-def read_config(run_dir: Path) -> dict:
-    path = Path(run_dir) / CONFIG
-    if not path.exists():
-        raise FileNotFoundError(f"{run_dir} is not a run directory (no {CONFIG})")
-    return json.loads(path.read_text())
-
-
 def _agent_config_from_json(algorithm: Algorithm, fields: dict) -> Any:
-    types = {f.name: f.type for f in dataclasses.fields(algorithm.preset)}
-    fields = {k: tuple(v) if isinstance(v, list) else v for k, v in fields.items() if k in types}
+    names = {f.name for f in dataclasses.fields(algorithm.preset)}
+    fields = {k: tuple(v) if isinstance(v, list) else v for k, v in fields.items() if k in names}
     return dataclasses.replace(algorithm.preset, **fields)
 
 
@@ -251,10 +243,9 @@ def summarize_metrics(metrics: dict[str, np.ndarray]) -> dict[str, float]:
     return out
 
 
-def policy_fn(run: Run):
-    """A NumPy policy from raw observations to actions, normalisation inside."""
-    act = networks.numpy_actor(jax.device_get(run.state["agent"].actor), run.max_action)
-    return lambda obs: act(run.normalizer(obs))
+def policy_fn(run: Run) -> Policy:
+    """The run's current actor as a NumPy policy on raw observations."""
+    return Policy(jax.device_get(run.state["agent"].actor), run.normalizer, run.max_action)
 
 
 def evaluate(run: Run) -> dict[str, float]:
