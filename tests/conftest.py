@@ -6,6 +6,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from handcalc import make_batch
 
 from eabc.data.generate import rollout
 
@@ -33,3 +34,9 @@ def pendulum_dataset():
         ref_min_score=PENDULUM_RANDOM_RETURN,
         ref_max_score=PENDULUM_CONTROLLER_RETURN,
     )
+
+
+@pytest.fixture
+def batch():
+    """A tiny batch of 7 random transitions (3-d observations, 2-d actions, two terminals)."""
+    return make_batch()

@@ -10,6 +10,7 @@ from typing import Annotated, Literal
 
 import tyro
 
+from eabc.training.online import SACTrainConfig
 from eabc.training.trainer import TrainConfig
 
 
@@ -86,6 +87,38 @@ class DataList:
     """Cache directory (default $EABC_CACHE_DIR or ~/.cache/eabc)."""
 
 
+@dataclasses.dataclass(frozen=True)
+class Sac:
+    """Train online SAC in a Gymnasium environment (the behaviour policies of the built-in datasets).
+
+    Logs training and evaluation returns to log.csv, keeps the actor every --snapshot-interval
+    steps under snapshots/, and checkpoints networks, optimisers and the replay buffer so that
+    --resume continues a killed run.
+    """
+
+    config: Annotated[SACTrainConfig, tyro.conf.OmitArgPrefixes]
+    run_dir: str | None = None
+    """Where the run goes (default runs/sac_ENV_seedS)."""
+    resume: str | None = None
+    """Continue the run in this directory from its last checkpoint (other options are ignored)."""
+    progress: bool = True
+    """Show a progress bar."""
+
+
+def run_sac(cmd: Sac) -> dict:
+    from eabc.training import online  # noqa: PLC0415
+
+    if cmd.resume:
+        run = online.resume_sac(cmd.resume)
+    else:
+        config = cmd.config
+        run = online.start_sac(config, cmd.run_dir or f"runs/sac_{config.env}_seed{config.seed}")
+    print(f"run directory: {run.run_dir}", file=sys.stderr)
+    summary = online.train_sac(run, progress=cmd.progress)
+    print(json.dumps(summary, indent=2))
+    return summary
+
+
 def run_train(cmd: Train) -> dict:
     from eabc.training import trainer  # noqa: PLC0415
 
@@ -148,7 +181,12 @@ def run_data(cmd: DataMake | DataInfo | DataList) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     argv = sys.argv[1:] if argv is None else list(argv)
-    commands: dict[str, type] = {"train": Train, "evaluate": Evaluate, "data": DataList}
+    commands: dict[str, type] = {
+        "train": Train,
+        "evaluate": Evaluate,
+        "sac": Sac,
+        "data": DataList,
+    }
     description = "EABC: ensemble-based offline RL with adaptive behaviour cloning."
     if argv[:1] == ["data"]:  # a second level: eabc data {make,list,info}
         commands, argv = {"make": DataMake, "list": DataList, "info": DataInfo}, argv[1:]
@@ -162,6 +200,8 @@ def main(argv: list[str] | None = None) -> None:
             run_train(cmd)
         elif isinstance(cmd, Evaluate):
             run_evaluate(cmd)
+        elif isinstance(cmd, Sac):
+            run_sac(cmd)
         else:
             run_data(cmd)
     except (ValueError, FileNotFoundError, FileExistsError) as error:

@@ -54,7 +54,8 @@ def mlp(params: Params, x: jax.Array) -> jax.Array:
 
 
 def ensemble_mlp(params: Params, x: jax.Array) -> jax.Array:
-    """Every member of an ensemble MLP on the same input ``x: [B, in]``; returns ``[K, B, out]``.
+    """Every member of an ensemble MLP on the same input ``x: [B, in]`` (or member ``k`` on
+    ``x[k]`` for ``x: [K, B, in]``); returns ``[K, B, out]``.
 
     The input is shared, so the first layer is one ``[B, in] x [in, K * out]`` product (15% faster
     per training step on CPU than a batched product with a tiny contraction); later layers are
@@ -62,8 +63,11 @@ def ensemble_mlp(params: Params, x: jax.Array) -> jax.Array:
     """
     n = num_layers(params)
     k, fan_in, width = params["w0"].shape
-    w0 = params["w0"].transpose(1, 0, 2).reshape(fan_in, k * width)
-    h = (x @ w0).reshape(-1, k, width).transpose(1, 0, 2) + params["b0"][:, None, :]
+    if x.ndim == 3:  # one input per member: [K, B, in]
+        h = jnp.einsum("kbi,kio->kbo", x, params["w0"]) + params["b0"][:, None, :]
+    else:
+        w0 = params["w0"].transpose(1, 0, 2).reshape(fan_in, k * width)
+        h = (x @ w0).reshape(-1, k, width).transpose(1, 0, 2) + params["b0"][:, None, :]
     for layer in range(1, n):
         h = jax.nn.relu(h)
         h = jnp.einsum("kbi,kio->kbo", h, params[f"w{layer}"]) + params[f"b{layer}"][:, None, :]
@@ -80,22 +84,77 @@ def critic_apply(params: Params, obs: jax.Array, action: jax.Array) -> jax.Array
     return ensemble_mlp(params, jnp.concatenate([obs, action], axis=-1))[..., 0]
 
 
-def numpy_actor(params: dict[str, np.ndarray], max_action: float):
-    """A NumPy copy of the actor for fast single-observation inference (evaluation, deployment)."""
+LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
+"""Range of the Gaussian actor's log standard deviation."""
+
+
+def gaussian_actor_apply(params: Params, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Tanh-Gaussian actor (SAC, CQL, EDAC): the MLP outputs the mean and log-std of ``u``."""
+    mean, log_std = jnp.split(mlp(params, obs), 2, axis=-1)
+    return mean, jnp.clip(log_std, LOG_STD_MIN, LOG_STD_MAX)
+
+
+def sample_tanh_gaussian(
+    key: jax.Array, mean: jax.Array, log_std: jax.Array, max_action: float
+) -> tuple[jax.Array, jax.Array]:
+    """An action ``max_action * tanh(u)``, ``u ~ N(mean, std)``, and its log-density.
+
+    The change of variables uses ``log(1 - tanh(u)^2) = 2 (log 2 - u - softplus(-2u))``, which is
+    exact and stable for large ``|u|``.
+    """
+    eps = jax.random.normal(key, mean.shape, mean.dtype)
+    u = mean + jnp.exp(log_std) * eps
+    log_prob = (-0.5 * eps**2 - log_std - 0.5 * np.log(2 * np.pi)).sum(axis=-1)
+    log_prob -= (2.0 * (np.log(2.0) - u - jax.nn.softplus(-2.0 * u))).sum(axis=-1)
+    log_prob -= mean.shape[-1] * np.log(max_action)
+    return max_action * jnp.tanh(u), log_prob
+
+
+def numpy_mlp(params: dict[str, np.ndarray]):
+    """A NumPy copy of an MLP for fast single-observation inference (evaluation, rollouts)."""
     weights = [
         (np.asarray(params[f"w{i}"], np.float32), np.asarray(params[f"b{i}"], np.float32))
         for i in range(len(params) // 2)
     ]
 
-    def act(obs: np.ndarray) -> np.ndarray:
+    def apply(obs: np.ndarray) -> np.ndarray:
         x = np.asarray(obs, np.float32)
         for i, (w, b) in enumerate(weights):
             x = x @ w + b
             if i < len(weights) - 1:
                 np.maximum(x, 0.0, out=x)
-        return (max_action * np.tanh(x)).astype(np.float32)
+        return x
+
+    return apply
+
+
+def numpy_actor(params: dict[str, np.ndarray], max_action: float, gaussian: bool = False):
+    """The deterministic action of an actor in NumPy: ``max_action * tanh(out)``.
+
+    For a Gaussian actor (``gaussian=True``) ``out`` is the mean, the first half of the outputs.
+    """
+    apply = numpy_mlp(params)
+
+    def act(obs: np.ndarray) -> np.ndarray:
+        out = apply(obs)
+        if gaussian:
+            out = out[..., : out.shape[-1] // 2]
+        return (max_action * np.tanh(out)).astype(np.float32)
 
     return act
+
+
+def numpy_gaussian_sampler(params: dict[str, np.ndarray], max_action: float):
+    """Sample ``max_action * tanh(u)``, ``u ~ N(mean, std)``, in NumPy: acting while collecting data."""
+    apply = numpy_mlp(params)
+
+    def sample(obs: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        mean, log_std = np.split(apply(obs), 2, axis=-1)
+        log_std = np.clip(log_std, LOG_STD_MIN, LOG_STD_MAX)
+        u = mean + np.exp(log_std) * rng.standard_normal(mean.shape, dtype=np.float32)
+        return (max_action * np.tanh(u)).astype(np.float32)
+
+    return sample
 
 
 def polyak(target: Params, online: Params, tau: float) -> Params:

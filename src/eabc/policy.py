@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from eabc import networks
+from eabc.agents import get_algorithm
 from eabc.data.dataset import Normalizer
 from eabc.training import checkpoint
 from eabc.training.checkpoint import read_config
@@ -15,9 +16,15 @@ from eabc.training.checkpoint import read_config
 class Policy:
     """A deterministic policy from raw observations to actions (normalisation inside). NumPy only."""
 
-    def __init__(self, actor: dict[str, np.ndarray], normalizer: Normalizer, max_action: float):
+    def __init__(
+        self,
+        actor: dict[str, np.ndarray],
+        normalizer: Normalizer,
+        max_action: float,
+        gaussian: bool = False,
+    ):
         self.normalizer = normalizer
-        self._act = networks.numpy_actor(actor, max_action)
+        self._act = networks.numpy_actor(actor, max_action, gaussian)
 
     def __call__(self, observation: np.ndarray) -> np.ndarray:
         return self._act(self.normalizer(np.asarray(observation, np.float32)))
@@ -36,4 +43,5 @@ def load_policy(run_dir: str | Path) -> Policy:
     normalizer = Normalizer(
         np.asarray(raw["normalizer"]["mean"]), np.asarray(raw["normalizer"]["std"])
     )
-    return Policy(actor, normalizer, config["max_action"])
+    gaussian = get_algorithm(config["train"]["algo"]).gaussian_actor
+    return Policy(actor, normalizer, config["max_action"], gaussian)

@@ -8,7 +8,7 @@ from __future__ import annotations
 import dataclasses
 from types import ModuleType
 
-from eabc.agents import eabc
+from eabc.agents import eabc, sac
 
 
 @dataclasses.dataclass(frozen=True)
@@ -19,9 +19,15 @@ class Algorithm:
     preset: object
     """The default config (a frozen dataclass) of this algorithm."""
 
+    @property
+    def gaussian_actor(self) -> bool:
+        """Whether the actor is tanh-Gaussian (its deterministic action is tanh of the mean)."""
+        return getattr(self.module, "GAUSSIAN_ACTOR", False)
+
 
 ALGORITHMS: dict[str, Algorithm] = {
-    name: Algorithm(name, eabc, preset) for name, preset in eabc.PRESETS.items()
+    **{name: Algorithm(name, eabc, preset) for name, preset in eabc.PRESETS.items()},
+    **{name: Algorithm(name, sac, sac.PRESETS[name]) for name in ("sac-n", "edac", "edac-10")},
 }
 
 

@@ -245,7 +245,8 @@ def summarize_metrics(metrics: dict[str, np.ndarray]) -> dict[str, float]:
 
 def policy_fn(run: Run) -> Policy:
     """The run's current actor as a NumPy policy on raw observations."""
-    return Policy(jax.device_get(run.state["agent"].actor), run.normalizer, run.max_action)
+    actor = jax.device_get(run.state["agent"].actor)
+    return Policy(actor, run.normalizer, run.max_action, run.algorithm.gaussian_actor)
 
 
 def evaluate(run: Run) -> dict[str, float]:
