@@ -151,7 +151,8 @@ def critic_loss(critic, critic_target, actor_target, batch: Batch, key, config, 
     }
 
 
-def actor_loss(actor, critic, batch: Batch, key, config, max_action):
+def actor_loss(actor, critic, batch: Batch, key, config, max_action, keep=None):
+    """The actor loss; ``keep`` (per sample, in [0, 1]) replaces the Bernoulli(p) BC mask if given."""
     pess_key, mask_key = jax.random.split(key)
     pi = networks.actor_apply(actor, batch.observations, max_action)
     q = networks.critic_apply(critic, batch.observations, pi)
@@ -160,7 +161,9 @@ def actor_loss(actor, critic, batch: Batch, key, config, max_action):
         loss = -value.mean()
         return loss, {"actor_loss": loss, "actor_value": value.mean()}
     lam = jax.lax.stop_gradient(config.alpha / jnp.abs(value).mean())
-    keep = jax.random.bernoulli(mask_key, config.confidence_level, value.shape).astype(pi.dtype)
+    if keep is None:
+        keep = jax.random.bernoulli(mask_key, config.confidence_level, value.shape)
+    keep = keep.astype(pi.dtype)
     bc = (keep * ((pi - batch.actions) ** 2).mean(axis=-1)).mean()
     loss = -lam * value.mean() + bc
     return loss, {
@@ -172,23 +175,26 @@ def actor_loss(actor, critic, batch: Batch, key, config, max_action):
     }
 
 
-def update(
-    state: EABCState, batch: Batch, key: jax.Array, config: EABCConfig, max_action: float
-) -> tuple[EABCState, dict[str, jax.Array]]:
-    """One gradient step of Algorithm 1. Pure: the same inputs always give the same outputs."""
-    actor_tx, critic_tx = _optimizers(config)
-    critic_key, actor_key = jax.random.split(key)
-
-    grads, critic_metrics = jax.grad(critic_loss, has_aux=True)(
-        state.critic, state.critic_target, state.actor_target, batch, critic_key, config, max_action
+def critic_step(state, batch: Batch, key, config: EABCConfig, max_action: float):
+    """One Adam step of the critic ensemble: ``(critic, critic_opt, metrics)``."""
+    _, critic_tx = _optimizers(config)
+    grads, metrics = jax.grad(critic_loss, has_aux=True)(
+        state.critic, state.critic_target, state.actor_target, batch, key, config, max_action
     )
     updates, critic_opt = critic_tx.update(grads, state.critic_opt, state.critic)
-    critic = optax.apply_updates(state.critic, updates)
-    step = state.step + 1
+    return optax.apply_updates(state.critic, updates), critic_opt, metrics
+
+
+def delayed_actor_step(state, critic, step, batch: Batch, key, config, max_action, keep=None):
+    """Every ``policy_freq`` steps: an actor step, then Polyak averaging of both targets.
+
+    Returns ``(actor, actor_opt, actor_target, critic_target), metrics`` (zeros when skipped).
+    """
+    actor_tx, _ = _optimizers(config)
 
     def actor_step(_):
         grads, metrics = jax.grad(actor_loss, has_aux=True)(
-            state.actor, critic, batch, actor_key, config, max_action
+            state.actor, critic, batch, key, config, max_action, keep
         )
         updates, actor_opt = actor_tx.update(grads, state.actor_opt, state.actor)
         actor = optax.apply_updates(state.actor, updates)
@@ -203,8 +209,18 @@ def update(
         zeros = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
         return (state.actor, state.actor_opt, state.actor_target, state.critic_target), zeros
 
-    (actor, actor_opt, actor_target, critic_target), actor_metrics = jax.lax.cond(
-        step % config.policy_freq == 0, actor_step, skip, None
+    return jax.lax.cond(step % config.policy_freq == 0, actor_step, skip, None)
+
+
+def update(
+    state: EABCState, batch: Batch, key: jax.Array, config: EABCConfig, max_action: float
+) -> tuple[EABCState, dict[str, jax.Array]]:
+    """One gradient step of Algorithm 1. Pure: the same inputs always give the same outputs."""
+    critic_key, actor_key = jax.random.split(key)
+    critic, critic_opt, critic_metrics = critic_step(state, batch, critic_key, config, max_action)
+    step = state.step + 1
+    (actor, actor_opt, actor_target, critic_target), actor_metrics = delayed_actor_step(
+        state, critic, step, batch, actor_key, config, max_action
     )
     new_state = EABCState(
         actor=actor,

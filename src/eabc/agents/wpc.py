@@ -1,0 +1,98 @@
+"""wPC, weighted policy constraints (Peng et al., AAAI 2023): TD3+BC whose behaviour-cloning term
+is kept only for the samples whose action looks better than the behaviour policy's average.
+
+On top of TD3+BC (the ``td3bc`` setting of the EABC rule) a state-value network ``V(s)`` is
+regressed on the target critics' value of the dataset action, ``min_i Q_targ_i(s, a)``; the
+advantage ``A(s, a) = min_i Q_targ_i(s, a) - V(s)`` then decides the BC mask,
+``w = 1[A(s, a) > 0]``, where EABC draws ``w ~ Bernoulli(p)``. Everything else (critic, target
+smoothing, delayed actor, lambda normalisation) is TD3+BC's, shared with :mod:`eabc.agents.eabc`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import flax.struct
+import jax
+import optax
+
+from eabc import networks
+from eabc.agents import eabc
+from eabc.agents.common import Batch
+
+
+@dataclasses.dataclass(frozen=True)
+class WPCConfig(eabc.EABCConfig):
+    """TD3+BC's settings (Fujimoto & Gu 2021) plus the value network's learning rate."""
+
+    num_critics: int = 2
+    confidence_level: float = 1.0
+    pessimism: eabc.Pessimism = "min"
+    actor_uses_ensemble: bool = False
+    value_lr: float = 3e-4
+    """Adam learning rate of V(s) (the critics' rate, as TD3+BC uses for every network)."""
+
+
+PRESETS = {"wpc": WPCConfig()}
+
+
+@flax.struct.dataclass
+class WPCState(eabc.EABCState):
+    value: networks.Params = None
+    value_opt: optax.OptState = None
+
+
+def init(key: jax.Array, obs_dim: int, act_dim: int, config: WPCConfig) -> WPCState:
+    agent_key, value_key = jax.random.split(key)
+    base = eabc.init(agent_key, obs_dim, act_dim, config)
+    value = networks.init_mlp(value_key, (obs_dim, *config.hidden_dims, 1))
+    fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(base)}
+    return WPCState(**fields, value=value, value_opt=optax.adam(config.value_lr).init(value))
+
+
+def value_loss(value, critic_target, batch: Batch):
+    """``mean (V(s) - min_i Q_targ_i(s, a))^2`` and the advantage of every dataset action."""
+    target = jax.lax.stop_gradient(
+        networks.critic_apply(critic_target, batch.observations, batch.actions).min(axis=0)
+    )
+    v = networks.mlp(value, batch.observations)[:, 0]
+    loss = ((v - target) ** 2).mean()
+    return loss, (jax.lax.stop_gradient(target - v), {"value_loss": loss, "v_mean": v.mean()})
+
+
+def update(
+    state: WPCState, batch: Batch, key: jax.Array, config: WPCConfig, max_action: float
+) -> tuple[WPCState, dict[str, jax.Array]]:
+    """Critic step, value step, then (every policy_freq steps) the advantage-masked actor step."""
+    critic_key, actor_key = jax.random.split(key)
+    critic, critic_opt, critic_metrics = eabc.critic_step(
+        state, batch, critic_key, config, max_action
+    )
+    grads, (advantage, value_metrics) = jax.grad(value_loss, has_aux=True)(
+        state.value, state.critic_target, batch
+    )
+    updates, value_opt = optax.adam(config.value_lr).update(grads, state.value_opt, state.value)
+    value = optax.apply_updates(state.value, updates)
+    step = state.step + 1
+    keep = advantage > 0
+    (actor, actor_opt, actor_target, critic_target), actor_metrics = eabc.delayed_actor_step(
+        state, critic, step, batch, actor_key, config, max_action, keep
+    )
+    new_state = state.replace(
+        actor=actor,
+        critic=critic,
+        actor_target=actor_target,
+        critic_target=critic_target,
+        actor_opt=actor_opt,
+        critic_opt=critic_opt,
+        step=step,
+        value=value,
+        value_opt=value_opt,
+    )
+    metrics = {
+        **critic_metrics,
+        **value_metrics,
+        **actor_metrics,
+        "actor_updated": step % config.policy_freq == 0,
+    }
+    return new_state, metrics
