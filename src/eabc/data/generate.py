@@ -1,7 +1,7 @@
 """D4RL-style datasets made here, by D4RL's recipe, into a cache directory.
 
-Random datasets need no behaviour policy (uniform random actions) and are available now; the policy
-datasets (medium, expert, medium-replay, medium-expert) need the behaviour-policy zoo.
+Random datasets need no behaviour policy (uniform random actions); medium, expert, medium-replay and
+medium-expert roll out the SAC policies of the behaviour-policy zoo (:mod:`eabc.data.zoo`).
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from eabc.data import tasks
-from eabc.data.dataset import Dataset, DatasetError
+from eabc.data.dataset import Dataset, DatasetError, concatenate
 from eabc.data.loaders import load_file
 
 FORMAT_VERSION = 1
@@ -50,28 +50,127 @@ def load_or_make(name: str, cache_dir: str | os.PathLike | None = None, seed: in
     return load_file(path)
 
 
-def make(name: str, path: str | os.PathLike, seed: int = 0, size: int | None = None) -> Path:
-    """Make the built-in dataset ``name`` and write it to ``path`` in D4RL's HDF5 layout."""
+MEDIUM_REPLAY_SIZE = {"hopper": 402_000, "halfcheetah": 202_000, "walker2d": 302_000}
+"""D4RL's medium-replay sizes (v2, rounded)."""
+
+RECIPES = {
+    "random": "uniform random actions",
+    "medium": "actions sampled from the zoo's medium SAC policy (stopped early near D4RL's medium level)",
+    "expert": "actions sampled from the zoo's expert SAC policy (fully trained)",
+    "medium-replay": (
+        "the zoo's SAC training snapshots up to the medium point, each rolled out (actions sampled, "
+        "uniform random during the warm-up) in proportion to how long it was the acting policy"
+    ),
+    "medium-expert": "the medium dataset followed by the expert dataset (same seed)",
+}
+
+
+def default_size(name: str) -> int:
+    env, kind = tasks.parse_task(name)
+    if kind == "medium-replay":
+        return MEDIUM_REPLAY_SIZE[env]
+    return 2 * DATASET_SIZE if kind == "medium-expert" else DATASET_SIZE
+
+
+def make(
+    name: str,
+    path: str | os.PathLike,
+    seed: int = 0,
+    size: int | None = None,
+    zoo_root: str | os.PathLike | None = None,
+) -> Path:
+    """Make the built-in dataset ``name`` and write it to ``path`` in D4RL's HDF5 layout.
+
+    Deterministic: the same name, seed, size and zoo give a bit-identical file.
+    """
+    from eabc.data import zoo  # noqa: PLC0415
+
     task = tasks.parse_task(name)
     if name not in builtin_names() or task is None:
         raise DatasetError(f"no recipe for {name!r}; built-in names: {', '.join(builtin_names())}")
     env_name, kind = task
-    if kind != "random":
-        raise DatasetError(
-            f"{name} needs a trained behaviour policy, and the behaviour-policy zoo does not ship "
-            "one yet; use a -random dataset, or load your own file (D4RL HDF5, .npz, Minari)"
-        )
     env = tasks.ENVS[env_name]
-    dataset = rollout(env.env_id, None, size or DATASET_SIZE, seed, desc=name)
+    size = size or default_size(name)
+    metadata = {"recipe": RECIPES[kind], "seed": seed, "version": FORMAT_VERSION}
+    if kind == "random":
+        dataset = rollout(env.env_id, None, size, seed, desc=name)
+    elif kind in ("medium", "expert"):
+        card = zoo.card(env_name, zoo_root)
+        actor = zoo.load_actor(zoo.policy_path(env_name, kind, zoo_root))
+        dataset = rollout(env.env_id, zoo.sampler(actor), size, seed, desc=name)
+        metadata["policy"] = {**card[kind], "training_steps": card["training_steps"]}
+    elif kind == "medium-replay":
+        dataset, phases = _medium_replay(env_name, size, seed, zoo_root)
+        metadata["phases"] = phases
+    else:
+        parts = [
+            _load_or_make_part(
+                Path(path).parent / f"{env_name}-{part}.hdf5",
+                size // 2 + (size % 2) * (part == "medium"),
+                seed,
+                zoo_root,
+            )
+            for part in ("medium", "expert")
+        ]
+        dataset = concatenate(parts, name)
+        metadata["policy"] = {
+            part: d.metadata.get("policy") for part, d in zip(("medium", "expert"), parts)
+        }
     dataset = Dataset(
         **{k: getattr(dataset, k) for k in _ARRAYS},
         name=name,
         env_id=env.env_id,
         ref_min_score=env.ref_min_score,
         ref_max_score=env.ref_max_score,
-        metadata={"recipe": "uniform random actions", "seed": seed, "version": FORMAT_VERSION},
+        metadata=metadata,
     )
     return save_hdf5(dataset, path)
+
+
+def _medium_replay(env_name: str, size: int, seed: int, zoo_root) -> tuple[Dataset, list[dict]]:
+    """Every training phase's share of ``size`` transitions, rolled out with its own policy."""
+    from eabc.data import zoo  # noqa: PLC0415
+
+    phases = zoo.replay_schedule(env_name, zoo_root)
+    total = phases[-1][1]
+    bounds = np.round(np.cumsum([0] + [stop - start for start, stop, _ in phases]) * size / total)
+    parts, described = [], []
+    for i, ((start, stop, policy), lo, hi) in enumerate(zip(phases, bounds[:-1], bounds[1:])):
+        count = int(hi - lo)
+        if count == 0:
+            continue
+        act = (
+            None
+            if policy is None
+            else zoo.sampler(zoo.load_actor(zoo.policy_path(env_name, policy, zoo_root)))
+        )
+        env_id = tasks.ENVS[env_name].env_id
+        parts.append(
+            rollout(
+                env_id, act, count, seed + i, desc=f"{env_name}-medium-replay {i + 1}/{len(phases)}"
+            )
+        )
+        described.append(
+            {
+                "policy": policy or "uniform random",
+                "train_steps": [start, stop],
+                "transitions": count,
+            }
+        )
+    return concatenate(parts, f"{env_name}-medium-replay"), described
+
+
+def _load_or_make_part(path: Path, size: int, seed: int, zoo_root) -> Dataset:
+    """A part of medium-expert: the cached dataset if it was made with this seed and size."""
+    if path.exists():
+        cached = load_file(path)
+        if cached.metadata.get("seed") == seed and cached.size == size:
+            return cached
+    tmp = path.with_name(f".{path.stem}-part-{seed}-{size}.hdf5")
+    try:
+        return load_file(make(path.stem, tmp, seed=seed, size=size, zoo_root=zoo_root))
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 _ARRAYS = ("observations", "actions", "rewards", "next_observations", "terminals", "timeouts")

@@ -1,0 +1,121 @@
+"""Datasets from behaviour policies: a zoo built from a short SAC run, and the D4RL recipes."""
+
+from __future__ import annotations
+
+import json
+
+import h5py
+import numpy as np
+import pytest
+
+from eabc.data import generate, zoo
+from eabc.data.loaders import load_file
+from eabc.training import online
+
+
+@pytest.fixture(scope="module")
+def tiny_zoo(tmp_path_factory):
+    """A hopper zoo from a 3000-step SAC run (snapshots every 500 steps); not a good policy, but
+    every mechanism of the real zoo: card, medium/expert choice, replay snapshots."""
+    root = tmp_path_factory.mktemp("zoo")
+    config = online.SACTrainConfig(
+        env="hopper",
+        steps=3000,
+        start_steps=1000,
+        update_every=50,
+        eval_interval=1000,
+        snapshot_interval=500,
+        checkpoint_interval=1000,
+        eval_episodes=1,
+    )
+    run = online.start_sac(config, root / "run")
+    online.train_sac(run, progress=False)
+    card = zoo.build(root / "run", "hopper", root / "zoo", episodes=2, medium_return=0.0, log=print)
+    return root / "zoo", card
+
+
+def test_zoo_card_and_files(tiny_zoo):
+    root, card = tiny_zoo
+    assert card == json.loads((root / "hopper" / zoo.CARD).read_text())
+    assert card["training_steps"] == 3000
+    assert card["expert"]["step"] in range(1000, 3001, 500)
+    medium = card["medium"]["step"]
+    assert card["replay"]["snapshots"] == list(range(500, medium, 500))
+    for name in (
+        "medium",
+        "expert",
+        *[f"replay/actor_{s:08d}" for s in card["replay"]["snapshots"]],
+    ):
+        with np.load(zoo.policy_path("hopper", name, root), allow_pickle=False) as f:
+            assert {f[k].dtype for k in f.files} == {np.dtype(np.float16)}
+    phases = zoo.replay_schedule("hopper", root)
+    assert phases[0] == (0, 500, None) and phases[-1][1] == medium
+    assert all(a[1] == b[0] for a, b in zip(phases, phases[1:])), "phases must tile training"
+
+
+def test_policy_dataset_layout_boundaries_and_determinism(tiny_zoo, tmp_path):
+    root, card = tiny_zoo
+    path = generate.make("hopper-medium", tmp_path / "a.hdf5", seed=3, size=2500, zoo_root=root)
+    again = generate.make("hopper-medium", tmp_path / "b.hdf5", seed=3, size=2500, zoo_root=root)
+    other = generate.make("hopper-medium", tmp_path / "c.hdf5", seed=4, size=2500, zoo_root=root)
+    with h5py.File(path) as f, h5py.File(again) as g, h5py.File(other) as h:
+        assert set(f.keys()) == set(generate._ARRAYS)
+        for key in generate._ARRAYS:
+            expected = bool if key in ("terminals", "timeouts") else np.float32
+            assert f[key].dtype == expected and len(f[key]) == 2500
+            np.testing.assert_array_equal(f[key][:], g[key][:])
+        assert not np.array_equal(f["actions"][:], h["actions"][:])
+        metadata = json.loads(f.attrs["metadata"])
+    assert metadata["seed"] == 3 and metadata["policy"]["step"] == card["medium"]["step"]
+    data = load_file(path)
+    assert not (data.terminals & data.timeouts).any()
+    ends = np.flatnonzero(data.terminals | data.timeouts)
+    assert ends[-1] == data.size - 1
+    # Within an episode the next observation is the following observation; across ends it is not.
+    inside = np.setdiff1d(np.arange(data.size - 1), ends)
+    np.testing.assert_array_equal(data.next_observations[inside], data.observations[inside + 1])
+    # Actions are sampled, not the deterministic mean: the dataset is not a deterministic rollout.
+    mean_action = zoo.networks.numpy_actor(
+        zoo.load_actor(zoo.policy_path("hopper", "medium", root)), 1.0, gaussian=True
+    )
+    assert np.abs(mean_action(data.observations[:100]) - data.actions[:100]).mean() > 1e-3
+
+
+def test_medium_replay_follows_the_training_phases(tiny_zoo, tmp_path):
+    root, card = tiny_zoo
+    size = 3000
+    path = generate.make(
+        "hopper-medium-replay", tmp_path / "mr.hdf5", seed=0, size=size, zoo_root=root
+    )
+    data = load_file(path)
+    assert data.size == size
+    phases = data.metadata["phases"]
+    assert sum(p["transitions"] for p in phases) == size
+    medium = card["medium"]["step"]
+    for p in phases:  # each phase's share is its share of the training steps up to medium
+        start, stop = p["train_steps"]
+        assert abs(p["transitions"] - size * (stop - start) / medium) <= 1
+    assert phases[0]["policy"] == "uniform random"
+
+
+def test_medium_expert_is_medium_then_expert(tiny_zoo, tmp_path):
+    root, _ = tiny_zoo
+    me = load_file(
+        generate.make(
+            "hopper-medium-expert",
+            tmp_path / "hopper-medium-expert.hdf5",
+            seed=1,
+            size=2000,
+            zoo_root=root,
+        )
+    )
+    medium = load_file(
+        generate.make("hopper-medium", tmp_path / "m.hdf5", seed=1, size=1000, zoo_root=root)
+    )
+    expert = load_file(
+        generate.make("hopper-expert", tmp_path / "e.hdf5", seed=1, size=1000, zoo_root=root)
+    )
+    np.testing.assert_array_equal(
+        me.observations, np.concatenate([medium.observations, expert.observations])
+    )
+    np.testing.assert_array_equal(me.actions, np.concatenate([medium.actions, expert.actions]))
