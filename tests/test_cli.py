@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from eabc.cli import main
-from eabc.data.loaders import save_npz
+from eabc.data.loaders import load_dataset, save_npz
 
 
 @pytest.fixture
@@ -72,7 +73,7 @@ def test_confidence_level_is_required_for_unknown_data(tmp_path, npz):
         main(["train", "--dataset", str(npz), "--run-dir", str(tmp_path / "r"), "--no-progress"])
 
 
-def test_data_commands(tmp_path, capsys):
+def test_data_commands(tmp_path, capsys, monkeypatch):
     main(["data", "make", "hopper-random", "--size", "600", "--cache-dir", str(tmp_path)])
     assert "hopper-random.hdf5" in capsys.readouterr().out
     main(["data", "list", "--cache-dir", str(tmp_path)])
@@ -81,3 +82,18 @@ def test_data_commands(tmp_path, capsys):
     main(["data", "info", "hopper-random", "--cache-dir", str(tmp_path)])
     info = json.loads(capsys.readouterr().out)
     assert info["transitions"] == 600 and info["episodes"] > 5 and info["env_id"] == "Hopper-v4"
+    assert info["d4rl_normalized_return"] == 1.0 and abs(info["normalized_return"]) < 10
+    row = next(line for line in listing.splitlines() if line.startswith("hopper-random "))
+    assert row.split()[1:3] == ["600", str(info["episodes"])], row
+
+    # Export to Minari and read it back through minari:ID: the same transitions.
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "minari"))
+    main(["data", "export", "hopper-random", "--cache-dir", str(tmp_path)])
+    assert capsys.readouterr().out.strip() == "eabc/hopper/random-v0"
+    exported = load_dataset("minari:eabc/hopper/random-v0")
+    original = load_dataset("hopper-random", cache_dir=tmp_path)
+    for key in ("observations", "actions", "rewards", "next_observations", "terminals", "timeouts"):
+        np.testing.assert_array_equal(getattr(exported, key), getattr(original, key))
+    assert exported.env_id == "Hopper-v4" and exported.ref_max_score == original.ref_max_score
+    with pytest.raises(SystemExit, match="exists already"):
+        main(["data", "export", "hopper-random", "--cache-dir", str(tmp_path)])

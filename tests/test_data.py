@@ -140,12 +140,13 @@ def test_random_dataset_is_deterministic_and_d4rl_shaped(tmp_path):
 
 def test_built_in_name_is_made_once_then_cached(tmp_path, monkeypatch):
     monkeypatch.setattr(generate, "DATASET_SIZE", 800)
+    monkeypatch.setenv("EABC_ZOO_DIR", str(tmp_path / "empty-zoo"))
     first = load_dataset("walker2d-random", cache_dir=tmp_path)
     mtime = generate.dataset_path("walker2d-random", tmp_path).stat().st_mtime_ns
     second = load_dataset("walker2d-random", cache_dir=tmp_path)
     assert generate.dataset_path("walker2d-random", tmp_path).stat().st_mtime_ns == mtime
     np.testing.assert_array_equal(first.actions, second.actions)
-    with pytest.raises(DatasetError, match="behaviour policy"):
+    with pytest.raises(DatasetError, match="zoo has no policies for 'walker2d'"):
         load_dataset("walker2d-medium", cache_dir=tmp_path)
 
 

@@ -146,9 +146,24 @@ def run_evaluate(cmd: Evaluate) -> dict:
     return result
 
 
-def run_data(cmd: DataMake | DataInfo | DataList) -> None:
-    from eabc.data import generate  # noqa: PLC0415
-    from eabc.data.loaders import load_dataset  # noqa: PLC0415
+@dataclasses.dataclass(frozen=True)
+class DataExport:
+    """Export a dataset to the local Minari path, for d3rlpy, CORL and other Minari readers."""
+
+    name: tyro.conf.Positional[str]
+    """A built-in name (made first if needed), a file path or minari:ID."""
+    minari: bool = True
+    """Export as a Minari dataset (the only format for now)."""
+    dataset_id: str | None = None
+    """The Minari id (default eabc/ENV/KIND-v0, e.g. eabc/hopper/medium-v0)."""
+    force: bool = False
+    """Replace an existing Minari dataset of that id."""
+    cache_dir: str | None = None
+    """Cache directory (default $EABC_CACHE_DIR or ~/.cache/eabc)."""
+
+
+def run_data(cmd: DataMake | DataInfo | DataList | DataExport) -> None:
+    from eabc.data import generate, loaders  # noqa: PLC0415
 
     if isinstance(cmd, DataMake):
         path = generate.dataset_path(cmd.name, cmd.cache_dir)
@@ -157,26 +172,29 @@ def run_data(cmd: DataMake | DataInfo | DataList) -> None:
             return
         print(generate.make(cmd.name, path, seed=cmd.seed, size=cmd.size))
     elif isinstance(cmd, DataList):
+        header = f"{'dataset':26s} {'transitions':>11s} {'episodes':>8s} {'return':>17s} {'score':>6s} {'D4RL':>5s}  file"
+        print(header)
         for name in generate.builtin_names():
             path = generate.dataset_path(name, cmd.cache_dir)
-            state = f"{path.stat().st_size / 2**20:.0f} MiB  {path}" if path.exists() else "-"
-            print(f"{name:28s} {state}")
+            level = generate.d4rl_level(name)
+            if not path.exists():
+                print(
+                    f"{name:26s} {'-':>11s} {'-':>8s} {'-':>17s} {'-':>6s} {level:5.0f}  (not made)"
+                )
+                continue
+            info = generate.describe(path)
+            spread = f"{info['return_mean']:.0f} +- {info['return_std']:.0f}"
+            print(
+                f"{name:26s} {info['transitions']:11d} {info['episodes']:8d} {spread:>17s} "
+                f"{info['normalized_return']:6.1f} {level:5.0f}  {path}"
+            )
+    elif isinstance(cmd, DataExport):
+        dataset = loaders.load_dataset(cmd.name, cmd.cache_dir)
+        dataset_id = cmd.dataset_id or loaders.minari_id(dataset.name)
+        print(loaders.export_minari(dataset, dataset_id, overwrite=cmd.force))
     else:
-        dataset = load_dataset(cmd.name, cmd.cache_dir)
-        returns = dataset.episode_returns()
-        info = {
-            "name": dataset.name,
-            "env_id": dataset.env_id,
-            "transitions": dataset.size,
-            "episodes": len(returns),
-            "terminals": int(dataset.terminals.sum()),
-            "timeouts": int(dataset.timeouts.sum()),
-            "return_mean": float(returns.mean()),
-            "return_std": float(returns.std()),
-            "normalized_return": dataset.normalized_score(float(returns.mean())),
-            "metadata": dataset.metadata,
-        }
-        print(json.dumps(info, indent=2))
+        dataset = loaders.load_dataset(cmd.name, cmd.cache_dir)
+        print(json.dumps(generate.describe_dataset(dataset), indent=2))
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -189,8 +207,9 @@ def main(argv: list[str] | None = None) -> None:
     }
     description = "EABC: ensemble-based offline RL with adaptive behaviour cloning."
     if argv[:1] == ["data"]:  # a second level: eabc data {make,list,info}
-        commands, argv = {"make": DataMake, "list": DataList, "info": DataInfo}, argv[1:]
-        description = "Datasets: make the built-in ones, list the cache, describe any dataset."
+        commands = {"make": DataMake, "list": DataList, "info": DataInfo, "export": DataExport}
+        argv = argv[1:]
+        description = "Datasets: make the built-in ones, list the cache, describe any dataset, export to Minari."
     try:
         cmd = tyro.extras.subcommand_cli_from_dict(commands, args=argv, description=description)
     except ValueError as error:  # invalid settings caught in a dataclass __post_init__

@@ -239,3 +239,41 @@ def save_hdf5(dataset: Dataset, path: str | os.PathLike) -> Path:
         f.attrs["metadata"] = json.dumps(dataset.metadata)
     os.replace(tmp, path)
     return path
+
+
+def d4rl_level(name: str) -> float | None:
+    """The mean normalised return of D4RL's dataset of this name (SPEC section 3)."""
+    from eabc.data import zoo  # noqa: PLC0415
+
+    task = tasks.parse_task(name)
+    return None if task is None else zoo.D4RL_LEVEL.get(task[1], {}).get(task[0])
+
+
+def describe_dataset(dataset: Dataset) -> dict:
+    """Size, episodes, returns and normalised return beside D4RL's level."""
+    returns = dataset.episode_returns()
+    mean = float(returns.mean()) if len(returns) else float("nan")
+    return {
+        "name": dataset.name,
+        "env_id": dataset.env_id,
+        "transitions": dataset.size,
+        "episodes": len(returns),
+        "terminals": int(dataset.terminals.sum()),
+        "timeouts": int(dataset.timeouts.sum()),
+        "return_mean": mean,
+        "return_std": float(returns.std()) if len(returns) else float("nan"),
+        "normalized_return": dataset.normalized_score(mean),
+        "d4rl_normalized_return": d4rl_level(dataset.name),
+        "metadata": dataset.metadata,
+    }
+
+
+def describe(path: str | os.PathLike) -> dict:
+    """:func:`describe_dataset` of a cached file, remembered in a sidecar ``.info.json``."""
+    path = Path(path)
+    sidecar = path.with_suffix(".info.json")
+    if sidecar.exists() and sidecar.stat().st_mtime >= path.stat().st_mtime:
+        return json.loads(sidecar.read_text())
+    info = describe_dataset(load_file(path))
+    sidecar.write_text(json.dumps(info, indent=2))
+    return info

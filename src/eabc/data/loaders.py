@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -164,3 +165,70 @@ def load_minari(dataset_id: str) -> Dataset:
         ref_max_score=_float(metadata.get("ref_max_score")),
         metadata={"source": "minari", "minari_id": dataset_id},
     )
+
+
+def minari_id(name: str) -> str:
+    """The Minari id a built-in dataset is exported under, e.g. ``eabc/hopper/medium-v0``."""
+    task = tasks.parse_task(name)
+    if task is None:
+        return f"eabc/{Path(name).stem}-v0"
+    return f"eabc/{task[0]}/{task[1]}-v0"
+
+
+def export_minari(dataset: Dataset, dataset_id: str, overwrite: bool = False) -> str:
+    """Write ``dataset`` as a local Minari dataset (episodes split at terminals and timeouts).
+
+    Readers such as d3rlpy or CORL can then use it with ``minari.load_dataset(dataset_id)``;
+    :func:`load_minari` reads it back to the same transitions.
+    """
+    import gymnasium as gym  # noqa: PLC0415
+    import minari  # noqa: PLC0415
+    from minari.data_collector import EpisodeBuffer  # noqa: PLC0415
+
+    if dataset_id in minari.list_local_datasets():
+        if not overwrite:
+            raise FileExistsError(
+                f"Minari dataset {dataset_id!r} exists already; pass --force to replace it"
+            )
+        minari.delete_dataset(dataset_id)
+    ends = np.flatnonzero(dataset.terminals | dataset.timeouts)
+    if len(ends) == 0 or ends[-1] != dataset.size - 1:
+        ends = np.append(ends, dataset.size - 1)
+    starts = np.concatenate([[0], ends[:-1] + 1])
+    episodes = []
+    for i, (lo, hi) in enumerate(zip(starts, ends + 1)):
+        episodes.append(
+            EpisodeBuffer(
+                id=i,
+                observations=np.concatenate(
+                    [dataset.observations[lo:hi], dataset.next_observations[hi - 1 : hi]]
+                ),
+                actions=dataset.actions[lo:hi],
+                rewards=dataset.rewards[lo:hi].astype(np.float64),
+                terminations=dataset.terminals[lo:hi],
+                truncations=~dataset.terminals[lo:hi] & (np.arange(lo, hi) == hi - 1),
+            )
+        )
+    env = gym.make(dataset.env_id) if dataset.env_id else None
+    with warnings.catch_warnings():  # Minari nags about author e-mail and code links
+        warnings.simplefilter("ignore", UserWarning)
+        minari.create_dataset_from_buffers(
+            dataset_id,
+            episodes,
+            env=env,
+            algorithm_name="eabc " + dataset.metadata.get("recipe", "dataset"),
+            author="eabc",
+            ref_min_score=dataset.ref_min_score,
+            ref_max_score=dataset.ref_max_score,
+            description=f"{dataset.name}, exported by eabc; metadata: {json.dumps(dataset.metadata)}",
+            observation_space=None if env else _box(dataset.observations),
+            action_space=None if env else _box(dataset.actions),
+        )
+    return dataset_id
+
+
+
+def _box(array: np.ndarray):
+    from gymnasium.spaces import Box  # noqa: PLC0415
+
+    return Box(-np.inf, np.inf, array.shape[1:], np.float32)
