@@ -119,6 +119,168 @@ def run_sac(cmd: Sac) -> dict:
     return summary
 
 
+@dataclasses.dataclass(frozen=True)
+class Sweep:
+    """Run a grid of experiments: datasets x algorithms x settings x seeds, resumable.
+
+    Each run gets its own directory under ROOT/runs; running the same sweep again skips finished
+    runs and resumes interrupted ones. Results go to ROOT/results.sqlite (`eabc results ROOT`) and
+    the paper's tables and figures come from `eabc report ROOT`.
+    """
+
+    spec: tyro.conf.Positional[str | None] = None
+    """A YAML file with datasets, algos, seeds, steps, grid and train keys (optional)."""
+    preset: Literal["table1", "table6", "ablation-k", "ablation-p", "ablation-pess"] | None = None
+    """One of the paper's grids (15 datasets x its algorithms or settings x 5 seeds)."""
+    root: str = "sweeps/default"
+    """The sweep's directory (runs, logs, results)."""
+    datasets: tuple[str, ...] = ()
+    """Datasets (replace the spec's or preset's)."""
+    algos: tuple[str, ...] = ()
+    """Algorithms (replace the spec's or preset's)."""
+    seeds: tuple[int, ...] = ()
+    """Seeds (replace the spec's or preset's)."""
+    steps: int | None = None
+    """Gradient steps per run (default the spec's, else 1M), e.g. to shorten a preset."""
+    grid: tuple[str, ...] = ()
+    """Extra grid axes as KEY=V1,V2 (e.g. num_critics=5,10 pessimism=min,mean-std)."""
+    backend: Literal["local", "ray"] = "local"
+    """local: a process pool on this machine; ray: one Ray task per job."""
+    ray_address: str = "auto"
+    """Ray cluster address (auto: the running cluster, or HOST:PORT)."""
+    workers: int | None = None
+    """Local processes at once (default: one per CPU core)."""
+    layout: Literal["auto", "vmap", "processes"] = "auto"
+    """vmap: a seed group trains in one process, vectorised (GPU); processes: one single-threaded
+    process per run (CPU); auto: vmap on an accelerator, processes on a CPU."""
+    cpus_per_job: float = 1.0
+    """Ray: CPUs declared per job."""
+    gpus_per_job: float = 0.0
+    """Ray: GPUs declared per job (e.g. 0.25 to pack four jobs per GPU)."""
+    dry_run: bool = False
+    """List the runs, their state and the estimated cost, then stop."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Results:
+    """List the runs of a sweep root (or any directory of runs) from its results store."""
+
+    root: tyro.conf.Positional[str]
+    filter: tuple[str, ...] = ()
+    """KEY=VALUE filters, e.g. dataset=hopper-* algo=eabc status=done."""
+    columns: tuple[str, ...] = (
+        "run_id", "status", "steps", "final_score", "steps_per_s", "wall_time_s",
+    )  # fmt: skip
+    """Columns to show."""
+    csv: bool = False
+    """Print CSV instead of a table."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Report:
+    """Make the paper's tables (Markdown, HTML, LaTeX) and figures from a sweep's results."""
+
+    root: tyro.conf.Positional[str]
+    out: str | None = None
+    """Output directory (default ROOT/report)."""
+
+
+def sweep_spec(cmd: Sweep) -> dict:
+    from eabc.experiments import sweep  # noqa: PLC0415
+
+    spec: dict = {}
+    if cmd.preset:
+        spec = {**sweep.PRESETS[cmd.preset]}
+    if cmd.spec:
+        spec = {**spec, **sweep.load_spec(cmd.spec)}
+    for key in ("datasets", "algos", "seeds"):
+        if getattr(cmd, key):
+            spec[key] = list(getattr(cmd, key))
+    if cmd.steps is not None:
+        spec["steps"] = cmd.steps
+    grid = dict(spec.get("grid") or {})
+    for item in cmd.grid:
+        key, sep, values = item.partition("=")
+        if not sep:
+            raise ValueError(f"bad --grid {item!r}; use KEY=V1,V2")
+        grid[key] = [_parse_value(v) for v in values.split(",")]
+    if grid:
+        spec["grid"] = grid
+    return spec
+
+
+def _parse_value(text: str):
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    return text
+
+
+def run_sweep(cmd: Sweep) -> None:
+    import yaml  # noqa: PLC0415
+
+    from eabc.experiments import results, sweep  # noqa: PLC0415
+
+    root = Path(cmd.root)
+    runs = sweep.expand(sweep_spec(cmd))
+    rows = sweep.plan(runs, root)
+    left = [r for r in rows if r["status"] != "done"]
+    hours = sum(r["seconds"] for r in left) / 3600
+    counts = {s: sum(r["status"] == s for r in rows) for s in ("done", "partial", "pending")}
+    print(
+        f"{len(rows)} runs in {root}: {counts['done']} done, {counts['partial']} partial, "
+        f"{counts['pending']} pending; about {hours:.1f} CPU-core-hours left at this machine's "
+        "measured speeds"
+    )
+    if cmd.dry_run:
+        for r in rows:
+            spec = r["run"]
+            print(
+                f"  {r['status']:8s} {r['steps_done']:>8d}  ~{r['seconds'] / 3600:6.2f} h  {spec.run_id}"
+            )
+        return
+    layout = sweep.default_layout() if cmd.layout == "auto" else cmd.layout
+    job_list = sweep.jobs(runs, root, layout)
+    root.mkdir(parents=True, exist_ok=True)
+    (root / "sweep.yaml").write_text(yaml.safe_dump(sweep_spec(cmd), sort_keys=False))
+    try:
+        if cmd.backend == "ray":
+            sweep.run_ray(job_list, root, cmd.ray_address, cmd.cpus_per_job, cmd.gpus_per_job)
+        else:
+            sweep.run_local(job_list, root, cmd.workers, single_thread=layout == "processes")
+    finally:
+        table, _ = results.collect(root)
+        print(f"results: {root / results.DATABASE} ({len(table)} runs)")
+
+
+def run_results(cmd: Results) -> None:
+    from eabc.experiments import results  # noqa: PLC0415
+
+    runs, _ = results.collect(cmd.root)
+    runs = results.query(runs, list(cmd.filter))
+    missing = [c for c in cmd.columns if c not in runs.columns]
+    if missing:
+        raise ValueError(f"unknown column(s) {missing}; choose from {', '.join(runs.columns)}")
+    table = runs[list(cmd.columns)]
+    if cmd.csv:
+        print(table.to_csv(index=False), end="")
+    else:
+        print(table.to_string(index=False, float_format=lambda x: f"{x:.1f}"))
+
+
+def run_report(cmd: Report) -> None:
+    from eabc.experiments import report, results  # noqa: PLC0415
+
+    runs, evaluations = results.collect(cmd.root)
+    if runs.empty:
+        raise ValueError(f"no runs under {cmd.root}")
+    out = Path(cmd.out) if cmd.out else Path(cmd.root) / "report"
+    for name, path in report.write_report(runs, evaluations, out).items():
+        print(f"{name}: {path}")
+
+
 def run_train(cmd: Train) -> dict:
     from eabc.training import trainer  # noqa: PLC0415
 
@@ -203,6 +365,9 @@ def main(argv: list[str] | None = None) -> None:
         "train": Train,
         "evaluate": Evaluate,
         "sac": Sac,
+        "sweep": Sweep,
+        "results": Results,
+        "report": Report,
         "data": DataList,
     }
     description = "EABC: ensemble-based offline RL with adaptive behaviour cloning."
@@ -221,9 +386,15 @@ def main(argv: list[str] | None = None) -> None:
             run_evaluate(cmd)
         elif isinstance(cmd, Sac):
             run_sac(cmd)
+        elif isinstance(cmd, Sweep):
+            run_sweep(cmd)
+        elif isinstance(cmd, Results):
+            run_results(cmd)
+        elif isinstance(cmd, Report):
+            run_report(cmd)
         else:
             run_data(cmd)
-    except (ValueError, FileNotFoundError, FileExistsError) as error:
+    except (ValueError, FileNotFoundError, FileExistsError, RuntimeError) as error:
         sys.exit(f"error: {error}")
 
 

@@ -70,8 +70,11 @@ class TrainConfig:
                 raise ValueError(f"{name} must be a multiple of log_interval={self.log_interval}")
 
 
-def resolve_agent_config(algo: str, dataset_name: str, overrides: dict[str, Any]) -> Any:
-    """The algorithm's preset with the user's overrides; p from Table 3 when EABC's is not given."""
+def resolve_agent_config(
+    algo: str, dataset_name: str, overrides: dict[str, Any], steps: int | None = None
+) -> Any:
+    """The algorithm's preset with the user's overrides; p from Table 3 when EABC's is not given,
+    and ``total_steps`` (e.g. IQL's learning-rate schedule) = the run's ``steps`` when not given."""
     algorithm = get_algorithm(algo)
     overrides = {k: v for k, v in overrides.items() if v is not None}
     fields = {f.name for f in dataclasses.fields(algorithm.preset)}
@@ -88,6 +91,8 @@ def resolve_agent_config(algo: str, dataset_name: str, overrides: dict[str, Any]
                 "policies and p >= 0.5 for good ones)"
             )
         overrides["confidence_level"] = p
+    if steps is not None and "total_steps" in fields and "total_steps" not in overrides:
+        overrides["total_steps"] = steps
     return dataclasses.replace(algorithm.preset, **overrides)
 
 
@@ -126,7 +131,9 @@ def start(
             "choose another --run-dir"
         )
     dataset = dataset if dataset is not None else load_dataset(config.dataset, config.cache_dir)
-    agent_config = resolve_agent_config(config.algo, dataset.name, agent_overrides or {})
+    agent_config = resolve_agent_config(
+        config.algo, dataset.name, agent_overrides or {}, config.steps
+    )
     run = _build(run_dir, config, agent_config, dataset, state=None)
     run_dir.mkdir(parents=True, exist_ok=True)
     checkpoint.save_json(
@@ -231,6 +238,15 @@ def train_chunk(agent_state, key, data: Batch, update, batch_size: int, length: 
     return agent_state, key, metrics
 
 
+@functools.partial(jax.jit, static_argnames=("update", "batch_size", "length"))
+def train_chunk_seeds(agent_states, keys, data: Batch, update, batch_size: int, length: int):
+    """:func:`train_chunk` for a stack of seeds (leading axis of states and keys), one program."""
+    chunk = functools.partial(
+        train_chunk.__wrapped__, update=update, batch_size=batch_size, length=length
+    )
+    return jax.vmap(chunk, in_axes=(0, 0, None))(agent_states, keys, data)
+
+
 def summarize_metrics(metrics: dict[str, np.ndarray]) -> dict[str, float]:
     """Means over a chunk; actor metrics only over the steps that updated the actor."""
     actor_steps = metrics.pop("actor_updated", None)
@@ -255,53 +271,117 @@ def evaluate(run: Run) -> dict[str, float]:
 
 def train(run: Run, progress: bool = True) -> dict[str, Any]:
     """Train ``run`` to ``config.steps`` from wherever it is; returns the summary."""
-    config, run_dir = run.config, run.run_dir
-    data = device_data(run.dataset, run.normalizer)
+    return train_seeds([run], progress)[0]
+
+
+def train_seeds(runs: list[Run], progress: bool = True) -> list[dict[str, Any]]:
+    """Train runs that differ only in their seed together, vectorised over the seeds.
+
+    One compiled chunk advances every seed (``vmap`` of the scanned update); then every run logs,
+    evaluates and checkpoints into its own directory exactly as if trained alone, so each can be
+    resumed or reported on its own. Runs that are not at the same step are trained one by one.
+    """
+    first = runs[0]
+    _check_same_setting(runs)
+    if len({run.step for run in runs}) > 1:
+        return [train_seeds([run], progress)[0] for run in runs]
+    config = first.config
+    dataset = first.dataset
+    preprocess = getattr(first.algorithm.module, "preprocess", None)
+    if preprocess is not None:  # e.g. IQL's reward scaling; the run keeps the data as loaded
+        dataset = preprocess(dataset)
+    data = device_data(dataset, first.normalizer)
     update = functools.partial(
-        run.algorithm.module.update, config=run.agent_config, max_action=run.max_action
+        first.algorithm.module.update, config=first.agent_config, max_action=first.max_action
     )
-    logger = RunLogger(run_dir, resume_step=run.step)
+    loggers = [RunLogger(run.run_dir, resume_step=run.step) for run in runs]
+    seeds = ",".join(str(run.config.seed) for run in runs)
     bar = tqdm(
         total=config.steps,
-        initial=run.step,
+        initial=first.step,
         unit="step",
         disable=not progress,
-        desc=f"{config.algo} {run.dataset.name}",
+        desc=f"{config.algo} {first.dataset.name}" + (f" seeds {seeds}" if len(runs) > 1 else ""),
         dynamic_ncols=True,
     )
     try:
-        while run.step < config.steps:
-            length = min(config.log_interval, config.steps - run.step)
+        while first.step < config.steps:
+            length = min(config.log_interval, config.steps - first.step)
             started = time.perf_counter()
-            agent, key, metrics = train_chunk(
-                run.state["agent"], run.state["key"], data, update, config.batch_size, length
-            )
-            metrics = summarize_metrics(jax.device_get(metrics))
+            if len(runs) == 1:
+                agent, key, metrics = train_chunk(
+                    first.state["agent"],
+                    first.state["key"],
+                    data,
+                    update,
+                    config.batch_size,
+                    length,
+                )
+                outputs = [(agent, key, metrics)]
+            else:
+                stack = lambda *xs: jnp.stack(xs)
+                agents, keys, metrics = train_chunk_seeds(
+                    jax.tree.map(stack, *[run.state["agent"] for run in runs]),
+                    jnp.stack([run.state["key"] for run in runs]),
+                    data,
+                    update,
+                    config.batch_size,
+                    length,
+                )
+                outputs = [
+                    jax.tree.map(lambda x, i=i: x[i], (agents, keys, metrics))
+                    for i in range(len(runs))
+                ]
+            jax.block_until_ready(outputs)
             seconds = time.perf_counter() - started
-            run.state = {**run.state, "agent": agent, "key": key}
-            run.state["elapsed"] += seconds
-            row = {
-                "step": run.step,
-                "wall_time": run.state["elapsed"],
-                "steps_per_s": length / seconds,
-            }
-            row |= metrics
-            if run.step % config.eval_interval == 0 or run.step == config.steps:
-                result = evaluate(run)
-                run.state["evaluations"][str(run.step)] = result
-                row |= result
-                _plot(run)
-            logger.log(row)
-            if run.step % config.checkpoint_interval == 0 or run.step == config.steps:
-                checkpoint.save(run_dir, run.state)
+            rows = [
+                _after_chunk(run, *output, length, seconds, logger)
+                for run, output, logger in zip(runs, outputs, loggers)
+            ]
             bar.update(length)
-            bar.set_postfix(_postfix(row, run.state["evaluations"]), refresh=False)
+            bar.set_postfix(_postfix(rows[0], first.state["evaluations"]), refresh=False)
     finally:
         bar.close()
-        logger.close()
-    summary = summarize_run(run)
-    checkpoint.save_json(run_dir / SUMMARY, summary)
-    return summary
+        for logger in loggers:
+            logger.close()
+    summaries = []
+    for run in runs:
+        summaries.append(summarize_run(run))
+        checkpoint.save_json(run.run_dir / SUMMARY, summaries[-1])
+    return summaries
+
+
+def _check_same_setting(runs: list[Run]) -> None:
+    first = runs[0]
+    for run in runs[1:]:
+        same = (
+            run.config == dataclasses.replace(first.config, seed=run.config.seed)
+            and run.agent_config == first.agent_config
+            and run.dataset.size == first.dataset.size
+        )
+        if not same:
+            raise ValueError(
+                f"{run.run_dir} differs from {first.run_dir} in more than its seed; "
+                "only seeds of one setting train together"
+            )
+
+
+def _after_chunk(run: Run, agent, key, metrics, length: int, seconds: float, logger) -> dict:
+    """Log, evaluate and checkpoint one run after a chunk of ``length`` steps."""
+    config = run.config
+    run.state = {**run.state, "agent": agent, "key": key}
+    run.state["elapsed"] += seconds
+    row = {"step": run.step, "wall_time": run.state["elapsed"], "steps_per_s": length / seconds}
+    row |= summarize_metrics(jax.device_get(metrics))
+    if run.step % config.eval_interval == 0 or run.step == config.steps:
+        result = evaluate(run)
+        run.state["evaluations"][str(run.step)] = result
+        row |= result
+        _plot(run)
+    logger.log(row)
+    if run.step % config.checkpoint_interval == 0 or run.step == config.steps:
+        checkpoint.save(run.run_dir, run.state)
+    return row
 
 
 def _postfix(row, evaluations) -> dict[str, str]:

@@ -1,0 +1,1 @@
+"""Experiments at scale: sweeps, the results store and the paper-style reports."""

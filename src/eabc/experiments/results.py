@@ -1,0 +1,161 @@
+"""The results store: every run of a sweep root in one SQLite file, rebuilt from the run directories.
+
+``ROOT/results.sqlite`` has two tables:
+
+- ``runs``: one row per run directory: ``run_id, run_dir, dataset, env, kind, algo, seed,
+  variant`` and the algorithm settings (``num_critics, confidence_level, pessimism``), then
+  ``status`` (done/partial), ``steps``, ``steps_target``, ``wall_time_s``, ``steps_per_s``,
+  ``final_score`` and ``final_return`` (means over the last 10 evaluations) and ``config`` (JSON);
+- ``evaluations``: ``run_id, step, score, score_std, return_mean, return_std``.
+
+The run directories are the source of truth (``config.json``, ``log.csv``, ``summary.json``); the
+file is a cache that :func:`collect` rewrites whenever asked, so deleting it loses nothing.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import sqlite3
+from pathlib import Path
+
+import pandas as pd
+
+from eabc.data import tasks
+from eabc.training.checkpoint import CONFIG
+from eabc.training.logger import LOG
+from eabc.training.trainer import FINAL_EVALUATIONS, SUMMARY
+
+DATABASE = "results.sqlite"
+SETTINGS = ("num_critics", "confidence_level", "pessimism")
+
+
+def run_dirs(root: Path) -> list[Path]:
+    """Every run directory under ``root`` (a sweep root, or a single run directory)."""
+    root = Path(root)
+    if (root / CONFIG).exists():
+        return [root]
+    return sorted(p.parent for p in root.rglob(CONFIG) if "train" in _read_json(p))
+
+
+def _read_json(path: Path) -> dict:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return {}
+
+
+def read_run(run_dir: Path, root: Path | None = None) -> tuple[dict, list[dict]]:
+    """One run's row and its evaluations, from its directory."""
+    config = _read_json(run_dir / CONFIG)
+    train, agent = config["train"], config.get("agent", {})
+    dataset = config.get("dataset", {}).get("name") or train["dataset"]
+    task = tasks.parse_task(dataset)
+    evaluations, last_row = [], {}
+    log = run_dir / LOG
+    if log.exists():
+        with open(log, newline="") as f:
+            for row in csv.DictReader(f):
+                last_row = row
+                if row.get("return_mean") not in (None, ""):
+                    evaluations.append(
+                        {
+                            "step": int(float(row["step"])),
+                            "score": _num(row.get("score")),
+                            "score_std": _num(row.get("score_std")),
+                            "return_mean": _num(row.get("return_mean")),
+                            "return_std": _num(row.get("return_std")),
+                        }
+                    )
+    summary = _read_json(run_dir / SUMMARY)
+    steps = int(float(last_row["step"])) if last_row else 0
+    wall = _num(last_row.get("wall_time")) if last_row else math.nan
+    last = evaluations[-FINAL_EVALUATIONS:]
+    run_id = run_dir.name if root is None else str(run_dir.relative_to(root))
+    spec = _read_json(run_dir / "sweep.json")  # written by eabc.experiments.sweep
+    row = {
+        "run_id": run_id,
+        "run_dir": str(run_dir),
+        "dataset": dataset,
+        "env": task[0] if task else None,
+        "kind": task[1] if task else None,
+        "algo": train["algo"],
+        "seed": int(train["seed"]),
+        "variant": spec.get("variant", ""),
+        **{k: agent.get(k) for k in SETTINGS},
+        "status": "done" if summary and summary.get("steps", 0) >= train["steps"] else "partial",
+        "steps": steps,
+        "steps_target": int(train["steps"]),
+        "wall_time_s": wall,
+        "steps_per_s": steps / wall if wall and wall > 0 else math.nan,
+        "final_score": _mean([e["score"] for e in last]),
+        "final_return": _mean([e["return_mean"] for e in last]),
+        "config": json.dumps(config),
+    }
+    return row, [{"run_id": run_id, **e} for e in evaluations]
+
+
+def _num(text) -> float:
+    return float(text) if text not in (None, "") else math.nan
+
+
+def _mean(values: list[float]) -> float:
+    values = [v for v in values if not math.isnan(v)]
+    return sum(values) / len(values) if values else math.nan
+
+
+def collect(root: str | Path, write: bool = True) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """``(runs, evaluations)`` of every run under ``root``; also rewrites ``root/results.sqlite``."""
+    root = Path(root)
+    rows, evaluations = [], []
+    for run_dir in run_dirs(root):
+        if not (run_dir / CONFIG).exists():
+            continue
+        row, evals = read_run(run_dir, root if run_dir != root else None)
+        rows.append(row)
+        evaluations.extend(evals)
+    runs = pd.DataFrame(rows, columns=_RUN_COLUMNS)
+    evals = pd.DataFrame(evaluations, columns=_EVAL_COLUMNS)
+    if write and root.is_dir():
+        tmp = root / (DATABASE + ".tmp")
+        tmp.unlink(missing_ok=True)
+        with sqlite3.connect(tmp) as db:
+            runs.to_sql("runs", db, index=False)
+            evals.to_sql("evaluations", db, index=False)
+        db.close()
+        tmp.replace(root / DATABASE)
+    return runs, evals
+
+
+_RUN_COLUMNS = [
+    "run_id", "run_dir", "dataset", "env", "kind", "algo", "seed", "variant", *SETTINGS,
+    "status", "steps", "steps_target", "wall_time_s", "steps_per_s", "final_score",
+    "final_return", "config",
+]  # fmt: skip
+_EVAL_COLUMNS = ["run_id", "step", "score", "score_std", "return_mean", "return_std"]
+
+
+def load(root: str | Path) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """The stored tables, rebuilt from the run directories if the file is missing."""
+    path = Path(root) / DATABASE
+    if not path.exists():
+        return collect(root)
+    with sqlite3.connect(path) as db:
+        runs = pd.read_sql("SELECT * FROM runs", db)
+        evals = pd.read_sql("SELECT * FROM evaluations", db)
+    db.close()
+    return runs, evals
+
+
+def query(runs: pd.DataFrame, filters: list[str]) -> pd.DataFrame:
+    """Rows matching every ``KEY=VALUE`` filter (values compared as text; ``*`` wildcards)."""
+    out = runs
+    for item in filters:
+        key, sep, value = item.partition("=")
+        if not sep or key not in runs.columns:
+            raise ValueError(
+                f"bad filter {item!r}: use KEY=VALUE with KEY one of {', '.join(runs.columns)}"
+            )
+        out = out[out[key].astype(str).str.fullmatch(value.replace("*", ".*"))]
+    return out

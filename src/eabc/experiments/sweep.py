@@ -1,0 +1,408 @@
+"""Experiment sweeps: a grid of runs, each in its own directory, resumable, local or on Ray.
+
+A sweep specification (YAML, or the same keys from the command line or a preset) names
+
+    datasets: [hopper-medium, walker2d-medium]     # any --dataset value
+    algos: [eabc, td3bc]                            # any --algo value
+    seeds: [0, 1, 2]
+    steps: 1000000
+    grid: {num_critics: [5, 10], confidence_level: [0.25, 1.0], pessimism: [mean-std, min]}
+    train: {eval_interval: 5000, eval_episodes: 10}  # any other TrainConfig field
+
+and expands to the product datasets x algos x grid x seeds (grid settings apply only to the
+algorithms that have them). Runs live in ``ROOT/runs/RUN_ID``; a sweep started again skips the
+finished runs and resumes the interrupted ones from their checkpoints.
+
+Seeds of one setting form a *group*. A group runs either as one process that trains its seeds
+together, vectorised with ``vmap`` (fastest on a GPU), or as one single-threaded process per seed
+(fastest on a few CPU cores); ``layout="auto"`` picks by the JAX backend.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from eabc.agents import get_algorithm
+from eabc.data import generate
+from eabc.training.trainer import SUMMARY, TrainConfig
+
+RUNS = "runs"
+SPEC = "sweep.json"
+"""What a sweep knows about one of its runs (its spec and variant label)."""
+SHORT = {"num_critics": "K", "confidence_level": "p"}
+"""Short names used in run ids and labels."""
+TRAIN_FIELDS = {f.name for f in dataclasses.fields(TrainConfig)} - {"dataset", "algo", "seed"}
+
+PRESETS: dict[str, dict[str, Any]] = {
+    # Table 1: EABC against BC, TD3, TD3+BC, CQL, IQL and wPC on the 15 datasets, 5 seeds, 1M steps.
+    "table1": {
+        "datasets": generate.builtin_names(),
+        "algos": ["bc", "td3", "td3bc", "cql", "iql", "wpc", "eabc"],
+        "seeds": [0, 1, 2, 3, 4],
+    },
+    # Table 6: against EDAC (50 critics) and EDAC-10.
+    "table6": {
+        "datasets": generate.builtin_names(),
+        "algos": ["edac", "edac-10", "eabc"],
+        "seeds": [0, 1, 2, 3, 4],
+    },
+    # Figure 2: K in {3, 5, 7, 10, 20, 30} with Table 3's p.
+    "ablation-k": {
+        "datasets": generate.builtin_names(),
+        "algos": ["eabc"],
+        "seeds": [0, 1, 2, 3, 4],
+        "grid": {"num_critics": [3, 5, 7, 10, 20, 30]},
+    },
+    # Figure 3: p in {0, 0.05, 0.25, 0.5, 0.75, 0.95, 1} at K = 10.
+    "ablation-p": {
+        "datasets": generate.builtin_names(),
+        "algos": ["eabc"],
+        "seeds": [0, 1, 2, 3, 4],
+        "grid": {"confidence_level": [0.0, 0.05, 0.25, 0.5, 0.75, 0.95, 1.0]},
+    },
+    # Figure 4: the pessimism operator at K = 10 with Table 3's p.
+    "ablation-pess": {
+        "datasets": generate.builtin_names(),
+        "algos": ["eabc"],
+        "seeds": [0, 1, 2, 3, 4],
+        "grid": {"pessimism": ["mean-std", "min", "min2"]},
+    },
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class RunSpec:
+    """One training run of a sweep."""
+
+    dataset: str
+    algo: str
+    seed: int
+    overrides: tuple[tuple[str, Any], ...] = ()
+    """Algorithm settings that differ from the preset, sorted by name."""
+    train: tuple[tuple[str, Any], ...] = ()
+    """TrainConfig fields (steps, eval_interval, ...), sorted by name."""
+
+    @property
+    def variant(self) -> str:
+        """A short label of the overrides, e.g. ``K=5 p=0.25`` (empty for the preset)."""
+        return " ".join(f"{SHORT.get(k, k)}={_text(v)}" for k, v in self.overrides)
+
+    @property
+    def group_id(self) -> str:
+        slug = "_".join(f"{SHORT.get(k, k)}{_text(v)}" for k, v in self.overrides)
+        name = Path(self.dataset).stem if os.sep in self.dataset else self.dataset
+        return "__".join(filter(None, [name.replace(":", "-").replace("/", "-"), self.algo, slug]))
+
+    @property
+    def run_id(self) -> str:
+        return f"{self.group_id}__seed{self.seed}"
+
+    def train_config(self) -> TrainConfig:
+        return TrainConfig(dataset=self.dataset, algo=self.algo, seed=self.seed, **dict(self.train))
+
+    def to_json(self) -> dict:
+        return {
+            "dataset": self.dataset,
+            "algo": self.algo,
+            "seed": self.seed,
+            "overrides": dict(self.overrides),
+            "train": dict(self.train),
+        }
+
+    @classmethod
+    def from_json(cls, data: dict) -> RunSpec:
+        return cls(
+            data["dataset"],
+            data["algo"],
+            int(data["seed"]),
+            _frozen(data.get("overrides", {})),
+            _frozen(data.get("train", {})),
+        )
+
+
+def _freeze(value):
+    """Lists (from YAML or JSON) as tuples, so settings are hashable like the config fields."""
+    return tuple(_freeze(v) for v in value) if isinstance(value, list | tuple) else value
+
+
+def _frozen(mapping: dict) -> tuple[tuple[str, Any], ...]:
+    return tuple(sorted((k, _freeze(v)) for k, v in mapping.items()))
+
+
+def _text(value) -> str:
+    return "-".join(map(str, value)) if isinstance(value, tuple) else str(value)
+
+
+def load_spec(path: str | os.PathLike) -> dict[str, Any]:
+    import yaml  # noqa: PLC0415
+
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"sweep specification {path} does not exist")
+    spec = yaml.safe_load(path.read_text()) or {}
+    if not isinstance(spec, dict):
+        raise ValueError(f"{path}: a sweep specification is a mapping (datasets:, algos:, ...)")
+    return spec
+
+
+def expand(spec: dict[str, Any]) -> list[RunSpec]:
+    """Every run of a specification, in a stable order (see the module docstring for the keys)."""
+    known = {"datasets", "algos", "seeds", "steps", "grid", "train"}
+    unknown = set(spec) - known
+    if unknown:
+        raise ValueError(f"unknown sweep key(s) {sorted(unknown)}; use {sorted(known)}")
+    for key in ("datasets", "algos"):
+        if not spec.get(key):
+            raise ValueError(f"the sweep needs at least one entry in {key!r}")
+    seeds = [int(s) for s in spec.get("seeds", [0])]
+    train = dict(spec.get("train") or {})
+    if "steps" in spec:
+        train["steps"] = int(spec["steps"])
+    bad = set(train) - TRAIN_FIELDS
+    if bad:
+        raise ValueError(f"unknown train setting(s) {sorted(bad)}; use {sorted(TRAIN_FIELDS)}")
+    TrainConfig(**train)  # validate early, before any run starts
+    grid = {
+        k: list(v) if isinstance(v, list | tuple) else [v]
+        for k, v in (spec.get("grid") or {}).items()
+    }
+    runs = []
+    for dataset, algo in itertools.product(spec["datasets"], spec["algos"]):
+        fields = {f.name for f in dataclasses.fields(get_algorithm(algo).preset)}
+        axes = {k: v for k, v in grid.items() if k in fields}
+        for values in itertools.product(*axes.values()):
+            overrides = _frozen(dict(zip(axes, values)))
+            for seed in seeds:
+                runs.append(RunSpec(dataset, algo, seed, overrides, _frozen(train)))
+    unused = set(grid) - {k for a in spec["algos"] for k in _fields(a)}
+    if unused:
+        raise ValueError(f"no algorithm of the sweep has the setting(s) {sorted(unused)}")
+    return runs
+
+
+def _fields(algo: str) -> set[str]:
+    return {f.name for f in dataclasses.fields(get_algorithm(algo).preset)}
+
+
+def groups(runs: list[RunSpec]) -> list[list[RunSpec]]:
+    """Runs that differ only in their seed, together."""
+    out: dict[str, list[RunSpec]] = {}
+    for run in runs:
+        out.setdefault(run.group_id, []).append(run)
+    return list(out.values())
+
+
+def status(run: RunSpec, root: Path) -> tuple[str, int]:
+    """``done``, ``partial`` (has a checkpoint) or ``pending``, and the steps done so far."""
+    run_dir = root / RUNS / run.run_id
+    summary = run_dir / SUMMARY
+    target = run.train_config().steps
+    if summary.exists():
+        steps = json.loads(summary.read_text()).get("steps", 0)
+        if steps >= target:
+            return "done", steps
+    if (run_dir / "checkpoint.msgpack").exists():
+        from eabc.training import checkpoint  # noqa: PLC0415
+
+        return "partial", int(checkpoint.load_raw(run_dir)["agent"]["step"])
+    return "pending", 0
+
+
+# Measured steps/s on the 2-core CPU machine, batch 256 (README; benchmarks/speed.py); the
+# estimate scales by K for the EABC family and uses these as rough costs of the others.
+CPU_STEPS_PER_S = {
+    "bc": 900.0,
+    "td3": 270.0,
+    "td3bc": 270.0,
+    "wpc": 220.0,
+    "eabc": 64.0,
+    "iql": 200.0,
+    "cql": 60.0,
+    "cql-lagrange": 55.0,
+    "sac-n": 60.0,
+    "edac-10": 45.0,
+    "edac": 9.0,
+}
+
+
+def estimate_seconds(run: RunSpec, steps_done: int = 0) -> float:
+    """A rough cost of the remaining steps on one machine like ours (2 CPU cores)."""
+    rate = CPU_STEPS_PER_S.get(run.algo, 60.0)
+    k = dict(run.overrides).get("num_critics")
+    if k is not None and run.algo in ("eabc", "td3", "td3bc", "wpc"):
+        rate = rate * 10.0 / max(int(k), 1) if run.algo == "eabc" else rate * 2.0 / max(int(k), 1)
+    config = run.train_config()
+    left = max(config.steps - steps_done, 0)
+    evaluations = left // config.eval_interval * config.eval_episodes
+    return left / rate + evaluations * EPISODE_SECONDS
+
+
+EPISODE_SECONDS = 0.15
+"""A 1000-step MuJoCo evaluation episode with the NumPy policy."""
+
+
+def plan(runs: list[RunSpec], root: Path) -> list[dict[str, Any]]:
+    rows = []
+    for run in runs:
+        state, steps = status(run, root)
+        rows.append(
+            {
+                "run": run,
+                "status": state,
+                "steps_done": steps,
+                "seconds": estimate_seconds(run, steps),
+            }
+        )
+    return rows
+
+
+def default_layout() -> str:
+    import jax  # noqa: PLC0415
+
+    return "vmap" if jax.default_backend() in ("gpu", "cuda", "rocm", "tpu") else "processes"
+
+
+def jobs(runs: list[RunSpec], root: Path, layout: str) -> list[list[RunSpec]]:
+    """The unfinished runs as jobs: a seed group per job (vmap) or one run per job."""
+    todo = [r for r in runs if status(r, root)[0] != "done"]
+    if layout == "vmap":
+        return groups(todo)
+    return [[r] for r in todo]
+
+
+def execute(job: list[dict], root: str) -> list[dict]:
+    """Run one job in this process: start or resume each run, then train (seeds vmapped)."""
+    from eabc.data.loaders import load_dataset  # noqa: PLC0415
+    from eabc.training import checkpoint, trainer  # noqa: PLC0415
+
+    root_path = Path(root)
+    specs = [RunSpec.from_json(j) for j in job]
+    first = specs[0].train_config()
+    dataset = load_dataset(first.dataset, first.cache_dir)  # one copy for the whole seed group
+    runs = []
+    for spec in specs:
+        run_dir = root_path / RUNS / spec.run_id
+        if (run_dir / "checkpoint.msgpack").exists():
+            runs.append(trainer.resume(run_dir, dataset))
+        else:
+            if (run_dir / "config.json").exists():  # killed before its first checkpoint
+                for child in run_dir.iterdir():
+                    _remove(child)
+            runs.append(trainer.start(spec.train_config(), run_dir, dict(spec.overrides), dataset))
+            checkpoint.save_json(
+                run_dir / SPEC, {"run_id": spec.run_id, "variant": spec.variant, **spec.to_json()}
+            )
+    summaries = (
+        trainer.train_seeds(runs, progress=False)
+        if len(runs) > 1
+        else [trainer.train(runs[0], progress=False)]
+    )
+    return summaries
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir():
+        for child in path.iterdir():
+            _remove(child)
+        path.rmdir()
+    else:
+        path.unlink()
+
+
+SINGLE_THREAD = {
+    "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1",
+    "OMP_NUM_THREADS": "1",
+    "OPENBLAS_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+}
+
+
+def run_local(
+    job_list: list[list[RunSpec]],
+    root: Path,
+    workers: int | None = None,
+    single_thread: bool = True,
+    log=print,
+) -> None:
+    """A pool of ``workers`` subprocesses (default: one per CPU core), one job each at a time.
+
+    Every job is ``python -m eabc.experiments.worker ROOT JOB_JSON``; a killed sweep kills its
+    workers, and the runs resume from their checkpoints next time.
+    """
+    workers = workers or os.cpu_count() or 1
+    env = {**os.environ, **(SINGLE_THREAD if single_thread else {})}
+    pending = list(job_list)
+    active: list[tuple[subprocess.Popen, list[RunSpec], Any]] = []
+    logs = root / "logs"
+    logs.mkdir(parents=True, exist_ok=True)
+    failures = []
+    try:
+        while pending or active:
+            while pending and len(active) < workers:
+                job = pending.pop(0)
+                name = job[0].group_id if len(job) > 1 else job[0].run_id
+                out = open(logs / f"{name}.log", "ab")  # noqa: SIM115
+                payload = json.dumps([r.to_json() for r in job])
+                cmd = [sys.executable, "-m", "eabc.experiments.worker", str(root), payload]
+                active.append((subprocess.Popen(cmd, env=env, stdout=out, stderr=out), job, out))
+                log(f"started {name} ({len(job)} run{'s' * (len(job) > 1)})")
+            time.sleep(0.2)
+            for proc, job, out in list(active):
+                if proc.poll() is None:
+                    continue
+                active.remove((proc, job, out))
+                out.close()
+                name = job[0].group_id if len(job) > 1 else job[0].run_id
+                if proc.returncode:
+                    failures.append(name)
+                    log(f"FAILED {name} (exit {proc.returncode}); see {logs / (name + '.log')}")
+                else:
+                    log(f"finished {name}")
+    finally:
+        for proc, _, out in active:
+            proc.terminate()
+            proc.wait()
+            out.close()
+    if failures:
+        raise RuntimeError(f"{len(failures)} job(s) failed: {', '.join(failures)}")
+
+
+def run_ray(
+    job_list: list[list[RunSpec]],
+    root: Path,
+    address: str = "auto",
+    num_cpus: float = 1.0,
+    num_gpus: float = 0.0,
+    log=print,
+) -> None:
+    """One Ray task per job with declared CPU/GPU resources; ``root`` must be a shared directory."""
+    import ray  # noqa: PLC0415
+
+    if not ray.is_initialized():
+        ray.init(address=address, log_to_driver=False)
+    env_vars = SINGLE_THREAD if num_gpus == 0 and num_cpus <= 1 else {}
+    remote = ray.remote(execute).options(
+        num_cpus=num_cpus, num_gpus=num_gpus, runtime_env={"env_vars": env_vars}, max_retries=2
+    )
+    futures = {remote.remote([r.to_json() for r in job], str(root)): job for job in job_list}
+    failures = []
+    while futures:
+        done, _ = ray.wait(list(futures), num_returns=1)
+        job = futures.pop(done[0])
+        name = job[0].group_id if len(job) > 1 else job[0].run_id
+        try:
+            ray.get(done[0])
+            log(f"finished {name}")
+        except Exception as error:  # noqa: BLE001 (report every failed job, then raise)
+            failures.append(name)
+            log(f"FAILED {name}: {error}")
+    if failures:
+        raise RuntimeError(f"{len(failures)} Ray job(s) failed: {', '.join(failures)}")

@@ -1,0 +1,187 @@
+"""Experiments at scale: seed-vectorised training, sweeps (local and Ray), the results store."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import jax
+import numpy as np
+import pytest
+import yaml
+
+from eabc.data.loaders import save_npz
+from eabc.experiments import results, sweep
+from eabc.training import trainer
+from eabc.training.trainer import TrainConfig
+
+SMALL = dict(
+    steps=300,
+    log_interval=100,
+    eval_interval=100,
+    checkpoint_interval=100,
+    eval_episodes=1,
+    env="Pendulum-v1",
+)
+AGENT = dict(num_critics=3, confidence_level=0.5, hidden_dims=(32, 32))
+
+
+def test_seed_vmapped_training_equals_training_the_seeds_one_by_one(tmp_path, pendulum_dataset):
+    def start(name, seed):
+        config = TrainConfig(dataset="pendulum", seed=seed, **SMALL)
+        return trainer.start(config, tmp_path / name, AGENT, dataset=pendulum_dataset)
+
+    together = [start(f"vmap{s}", s) for s in (0, 1, 2)]
+    summaries = trainer.train_seeds(together, progress=False)
+    for seed, run, summary in zip((0, 1, 2), together, summaries):
+        alone = start(f"alone{seed}", seed)
+        expected = trainer.train(alone, progress=False)
+        for a, b in zip(
+            jax.tree.leaves(jax.device_get(run.state["agent"])),
+            jax.tree.leaves(jax.device_get(alone.state["agent"])),
+            strict=True,
+        ):
+            np.testing.assert_allclose(a, b, rtol=2e-4, atol=2e-5)
+        assert summary["steps"] == expected["steps"] == 300
+        np.testing.assert_allclose(summary["final_score"], expected["final_score"], atol=0.5)
+        assert (tmp_path / f"vmap{seed}" / "summary.json").exists()
+    first, second = (jax.device_get(r.state["agent"].actor["w0"]) for r in together[:2])
+    assert not np.allclose(first, second), "different seeds must give different runs"
+
+
+def test_sweep_expansion_ids_and_validation():
+    runs = sweep.expand(
+        {
+            "datasets": ["hopper-medium", "walker2d-random"],
+            "algos": ["eabc", "bc"],
+            "seeds": [0, 1],
+            "steps": 1000,
+            "grid": {"num_critics": [5, 10]},
+        }
+    )
+    # eabc has num_critics (2 values), bc does not (1 arm): (2 + 1) x 2 datasets x 2 seeds.
+    assert len(runs) == 12
+    ids = [r.run_id for r in runs]
+    assert len(set(ids)) == 12 and "hopper-medium__eabc__K5__seed1" in ids
+    assert {r.variant for r in runs if r.algo == "eabc"} == {"K=5", "K=10"}
+    assert all(r.train_config().steps == 1000 for r in runs)
+    assert len(sweep.groups(runs)) == 6
+    with pytest.raises(ValueError, match="no algorithm of the sweep has"):
+        sweep.expand(
+            {"datasets": ["hopper-medium"], "algos": ["bc"], "grid": {"pessimism": ["min"]}}
+        )
+    with pytest.raises(ValueError, match="unknown sweep key"):
+        sweep.expand({"datasets": ["x"], "algos": ["bc"], "seedz": [1]})
+    for preset in sweep.PRESETS.values():
+        assert len(sweep.expand(preset)) >= 15 * 5
+
+
+@pytest.fixture
+def two_datasets(tmp_path, pendulum_dataset):
+    paths = []
+    for i, name in enumerate(("pendA", "pendB")):
+        data = dataclasses.replace(pendulum_dataset, name=name)
+        if i:  # the second dataset: every other transition, a different dataset
+            data = dataclasses.replace(
+                data, **{k: getattr(data, k)[::2] for k in
+                         ("observations", "actions", "rewards", "next_observations",
+                          "terminals", "timeouts")}
+            )  # fmt: skip
+        paths.append(tmp_path / f"{name}.npz")
+        save_npz(data, paths[-1])
+    return [str(p) for p in paths]
+
+
+def test_local_sweep_is_interrupted_resumed_and_stored(tmp_path, two_datasets):
+    root = tmp_path / "sweep"
+    spec = _spec(two_datasets, steps=600)
+    runs = sweep.expand(spec)
+    assert len(runs) == 8
+    root.mkdir()
+    (root / "spec.yaml").write_text(yaml.safe_dump(spec))
+    # Start the sweep, kill it as soon as some run has a checkpoint but not all are done.
+    proc = subprocess.Popen(_cli(two_datasets, root, "--workers", "2"), start_new_session=True)
+    try:
+        deadline = time.time() + 300
+        while time.time() < deadline:
+            states = [sweep.status(r, root)[0] for r in runs]
+            if "partial" in states:
+                break
+            assert proc.poll() is None, "the sweep ended before it could be interrupted"
+            time.sleep(0.05)
+        os.killpg(proc.pid, signal.SIGTERM)
+        proc.wait(30)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    interrupted = [r for r, s in zip(runs, states) if s == "partial"]
+    assert interrupted and states.count("done") < len(runs)
+
+    subprocess.run(_cli(two_datasets, root), check=True)
+    assert [sweep.status(r, root)[0] for r in runs] == ["done"] * len(runs)
+    table, evaluations = results.collect(root)
+    assert len(table) == 8 and set(table["status"]) == {"done"}
+    for run in interrupted:  # resumed, not restarted: one log row per step
+        steps = evaluations[evaluations.run_id == f"runs/{run.run_id}"]["step"].tolist()
+        assert steps == [100, 200, 300, 400, 500, 600], steps
+    # The stored scores are the run directories' own numbers.
+    for run in runs:
+        row = table[table.run_id == f"runs/{run.run_id}"].iloc[0]
+        summary = json.loads((root / "runs" / run.run_id / "summary.json").read_text())
+        assert row["final_score"] == pytest.approx(summary["final_score"], abs=1e-9)
+        assert row["variant"] == run.variant
+    again, _ = results.load(root)
+    assert len(again) == 8
+    (root / results.DATABASE).unlink()
+    rebuilt, _ = results.load(root)
+    assert sorted(rebuilt.run_id) == sorted(table.run_id)
+    assert set(results.query(table, ["algo=bc"]).algo) == {"bc"}
+
+    # The report: every table and figure, with the stored numbers in the table.
+    subprocess.run([sys.executable, "-m", "eabc.cli", "report", str(root)], check=True)
+    out = root / "report"
+    for name in ("table.md", "table.html", "table.tex", "aggregate.md", "report.md"):
+        assert (out / name).stat().st_size > 0, name
+    for name in ("curves.png", "runtime.png", "profiles.png"):
+        assert (out / name).read_bytes()[:4] == b"\x89PNG", name
+    markdown = (out / "table.md").read_text()
+    bc_scores = table[(table.algo == "bc") & table.dataset.str.startswith("pendA")]["final_score"]
+    assert f"{bc_scores.mean():.1f}" in markdown
+
+
+def _spec(datasets, steps):
+    return {
+        "datasets": datasets,
+        "algos": ["eabc", "bc"],
+        "seeds": [0, 1],
+        "steps": steps,
+        "grid": {"confidence_level": [0.5], "hidden_dims": [[32, 32]]},
+        "train": {k: v for k, v in SMALL.items() if k != "steps"},
+    }
+
+
+def _cli(datasets, root, *extra):
+    return [
+        sys.executable, "-m", "eabc.cli", "sweep", str(root / "spec.yaml"), "--root", str(root),
+        *extra,
+    ]  # fmt: skip
+
+
+def test_ray_backend_runs_a_sweep_on_a_local_ray_instance(tmp_path, two_datasets):
+    ray = pytest.importorskip("ray")
+    root = tmp_path / "ray-sweep"
+    spec = _spec(two_datasets, steps=200)
+    runs = sweep.expand(spec)
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        sweep.run_ray(sweep.jobs(runs, root, "vmap"), root)
+    finally:
+        ray.shutdown()
+    assert [sweep.status(r, root)[0] for r in runs] == ["done"] * 8
+    table, _ = results.collect(root)
+    assert len(table) == 8 and table["final_score"].notna().all()

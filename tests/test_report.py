@@ -1,0 +1,336 @@
+"""Reports: tables against the inputs, bold on the best cell, rliable statistics, figures on disk."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pandas as pd
+import pytest
+from scipy import stats
+
+from eabc.experiments import report
+
+DATASETS = ("walker2d-medium", "hopper-random")  # out of table order on purpose
+LEVELS = {"td3bc": 55.0, "iql": 45.0, "eabc": 70.0, "eabc K=5": 62.0}
+SEEDS = (0, 1, 2)
+STEPS = np.arange(1, 7) * 5000
+PNG = b"\x89PNG\r\n\x1a\n"
+
+
+def make_results(seed: int = 0) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """2 datasets x 3 algorithms x 3 seeds, plus EABC with K=5 (an ablation with 2 values of K)."""
+    rng = np.random.default_rng(seed)
+    settings = {
+        "td3bc": ("td3bc", "", 2.0, 1.0, "min", 270.0),
+        "iql": ("iql", "", np.nan, np.nan, None, 200.0),
+        "eabc": ("eabc", "", 10.0, 0.25, "mean-std", 64.0),
+        "eabc K=5": ("eabc", "K=5", 5.0, 0.25, "mean-std", 120.0),
+    }
+    runs, evaluations = [], []
+    for dataset in DATASETS:
+        for label, (algo, variant, k, p, pessimism, speed) in settings.items():
+            for s in SEEDS:
+                run_id = f"{dataset}__{algo}__{variant}__seed{s}"
+                curve = LEVELS[label] * (0.5 + STEPS / STEPS[-1] / 2) + rng.normal(0, 4, STEPS.size)
+                evaluations += [
+                    {"run_id": run_id, "step": int(t), "score": v, "return_mean": 30 * v}
+                    for t, v in zip(STEPS, curve)
+                ]
+                steps_per_s = speed * rng.uniform(0.8, 1.2)
+                runs.append(
+                    {
+                        "run_id": run_id,
+                        "dataset": dataset,
+                        "algo": algo,
+                        "seed": s,
+                        "num_critics": k,
+                        "confidence_level": p,
+                        "pessimism": pessimism,
+                        "steps": int(STEPS[-1]),
+                        "status": "done",
+                        "wall_time_s": STEPS[-1] / steps_per_s,
+                        "steps_per_s": steps_per_s,
+                        "final_score": LEVELS[label] + rng.normal(0, 5),
+                        "variant": variant,
+                    }
+                )
+    return pd.DataFrame(runs), pd.DataFrame(evaluations)
+
+
+def labelled(runs: pd.DataFrame) -> pd.Series:
+    return runs["algo"] + runs["variant"].map(lambda v: f" {v}" if v else "")
+
+
+def grouped(runs: pd.DataFrame) -> pd.DataFrame:
+    return runs.groupby(["dataset", labelled(runs).rename("label")])["final_score"].agg(
+        ["mean", "std", "count"]
+    )
+
+
+@pytest.fixture(scope="module")
+def results():
+    return make_results()
+
+
+@pytest.fixture(scope="module")
+def written(results, tmp_path_factory):
+    runs, evaluations = results
+    out = tmp_path_factory.mktemp("report")
+    return out, report.write_report(runs, evaluations, out)
+
+
+# Table 1
+
+
+def test_score_table_cells_equal_the_groupby_of_the_input(results):
+    runs, _ = results
+    table = report.score_table(runs)
+    expected = grouped(runs)
+    assert list(table.index) == ["hopper-random", "walker2d-medium", "Average"]
+    assert report._columns(table) == ["td3bc", "iql", "eabc", "eabc K=5"]
+    means = table.xs("mean", axis=1, level="stat")
+    stds = table.xs("std", axis=1, level="stat")
+    count = table.xs("runs", axis=1, level="stat")
+    for (dataset, label), row in expected.iterrows():
+        assert means.at[dataset, label] == pytest.approx(row["mean"], abs=1e-12)
+        assert stds.at[dataset, label] == pytest.approx(row["std"], abs=1e-12)
+        assert count.at[dataset, label] == row["count"] == len(SEEDS)
+
+
+def test_average_row_is_over_the_datasets_where_a_column_has_values(results):
+    runs, _ = results
+    extra = runs[(runs["algo"] == "iql") & (runs["dataset"] == "hopper-random")].copy()
+    extra["algo"], extra["run_id"] = "cql", extra["run_id"] + "_cql"
+    extra["final_score"] = [10.0, 20.0, 60.0]
+    table = report.score_table(pd.concat([runs, extra]))
+    means = table.xs("mean", axis=1, level="stat")
+    stds = table.xs("std", axis=1, level="stat")
+    expected = grouped(runs)
+    for label in LEVELS:
+        per_dataset = expected.xs(label, level="label")
+        assert means.at["Average", label] == pytest.approx(per_dataset["mean"].mean())
+        assert stds.at["Average", label] == pytest.approx(per_dataset["std"].mean())
+    assert np.isnan(means.at["walker2d-medium", "cql"])
+    assert means.at["Average", "cql"] == pytest.approx(30.0)
+    assert stds.at["Average", "cql"] == pytest.approx(np.std([10.0, 20.0, 60.0], ddof=1))
+    assert "–" in report.to_markdown(table)  # the missing cell
+
+
+def test_datasets_are_ordered_by_environment_then_kind():
+    names = [
+        "walker2d-expert",
+        "antmaze-umaze",
+        "halfcheetah-random",
+        "hopper-medium-expert",
+        "ant-medium",
+        "hopper-medium-replay",
+        "hopper-medium",
+        "hopper-random",
+    ]
+    assert sorted(names, key=report.dataset_sort_key) == [
+        "hopper-random",
+        "hopper-medium",
+        "hopper-medium-replay",
+        "hopper-medium-expert",
+        "halfcheetah-random",
+        "walker2d-expert",
+        "ant-medium",
+        "antmaze-umaze",
+    ]
+
+
+def markdown_rows(text: str) -> dict[str, list[str]]:
+    lines = [line for line in text.splitlines() if line.startswith("| ")]
+    return {
+        cells[0]: cells[1:]
+        for cells in ([c.strip() for c in ln.strip("| ").split(" | ")] for ln in lines[1:])
+    }
+
+
+def best_columns(runs: pd.DataFrame) -> dict[str, int]:
+    """Row -> position of the highest mean, computed from the input without the report code."""
+    order = ["td3bc", "iql", "eabc", "eabc K=5"]
+    means = grouped(runs)["mean"].unstack("label")[order]
+    best = {d: int(np.argmax(means.loc[d].to_numpy())) for d in means.index}
+    best["Average"] = int(np.argmax(means.mean(axis=0).to_numpy()))
+    return best
+
+
+def test_the_best_mean_of_each_row_is_bold_in_every_format(results):
+    runs, _ = results
+    runs = runs.copy()  # make the row winners differ: td3bc best on hopper-random
+    runs.loc[(runs["dataset"] == "hopper-random") & (runs["algo"] == "td3bc"), "final_score"] += 40
+    table = report.score_table(runs)
+    best = best_columns(runs)
+    assert best["hopper-random"] != best["walker2d-medium"]
+
+    md = markdown_rows(report.to_markdown(table))
+    html = {
+        re.search(r"<th>(.*?)</th>", row)[1]: re.findall(r"<td>(.*?)</td>", row)
+        for row in re.findall(r"<tr><th>.*?</tr>", report.to_html(table))
+    }
+    tex_lines = [ln for ln in report.to_latex(table).splitlines() if ln.endswith("\\\\")]
+    tex = {cells[0]: cells[1:] for cells in (ln[:-2].strip().split(" & ") for ln in tex_lines)}
+    for rendered, bold in (
+        (md, r"^\*\*.*\*\*$"),
+        (html, r"^<b>.*</b>$"),
+        (tex, r"^\\textbf\{.*\}$"),
+    ):
+        assert set(best) <= set(rendered)
+        for row, position in best.items():
+            marked = [i for i, cell in enumerate(rendered[row]) if re.match(bold, cell)]
+            assert marked == [position], (row, rendered[row])
+    assert "$\\pm$" in tex["hopper-random"][0] and "&plusmn;" in html["hopper-random"][0]
+
+
+# Aggregate statistics
+
+
+@pytest.mark.parametrize("n", [7, 10, 13])
+def test_iqm_equals_scipy_trim_mean_with_fractional_quartile_boundaries(n):
+    x = np.random.default_rng(n).normal(50, 20, n)
+    assert 0.25 * n != int(0.25 * n)
+    assert report.iqm(x) == pytest.approx(stats.trim_mean(x, 0.25))
+    assert report.iqm(x) != pytest.approx(x.mean())
+    tasks = [x[:3], x[3:]]  # pooled over tasks of different sizes
+    assert report.iqm(tasks) == pytest.approx(stats.trim_mean(x, 0.25))
+
+
+def test_bootstrap_ci_contains_the_estimate_narrows_with_runs_and_is_reproducible():
+    rng = np.random.default_rng(1)
+    small, large = rng.normal(50, 10, (5, 3)), rng.normal(50, 10, (100, 3))
+    widths = []
+    for scores in (small, large):
+        for statistic in (report.iqm, report.aggregate_mean):
+            low, high = report.stratified_bootstrap_ci(scores, statistic, reps=500)
+            assert low <= statistic(scores) <= high
+        low, high = report.stratified_bootstrap_ci(scores, report.aggregate_mean, reps=500)
+        widths.append(high - low)
+    assert widths[1] < widths[0] / 2
+    again = report.stratified_bootstrap_ci(small, report.iqm, reps=500)
+    assert again == report.stratified_bootstrap_ci(small, report.iqm, reps=500)
+    assert again != report.stratified_bootstrap_ci(small, report.iqm, reps=500, seed=1)
+    tighter = report.stratified_bootstrap_ci(small, report.iqm, reps=500, alpha=0.5)
+    assert again[0] <= tighter[0] <= tighter[1] <= again[1]
+
+
+def test_bootstrap_resamples_runs_within_each_task():
+    # Constant within each task: any resample within tasks has the same mean; pooling would not.
+    matrix = np.array([[1.0, 5.0], [1.0, 5.0], [1.0, 5.0]])
+    assert report.stratified_bootstrap_ci(matrix, report.aggregate_mean, reps=300) == (3.0, 3.0)
+    assert report.stratified_bootstrap_ci(matrix, np.mean, reps=300) == (3.0, 3.0)
+    ragged = [np.full(2, 1.0), np.full(5, 5.0)]  # tasks with different numbers of seeds
+    iqm = stats.trim_mean(np.concatenate(ragged), 0.25)
+    assert report.stratified_bootstrap_ci(ragged, report.iqm, reps=300) == (iqm, iqm)
+    spread = [np.array([1.0, 9.0]), np.full(5, 5.0)]  # a task with spread gives a spread
+    low, high = report.stratified_bootstrap_ci(spread, report.aggregate_mean, reps=300)
+    assert low < high
+    shapes = set()
+    report.stratified_bootstrap_ci(matrix, lambda s: shapes.add(s.shape) or 0.0, reps=3)
+    report.stratified_bootstrap_ci(ragged, lambda s: shapes.add(tuple(map(len, s))) or 0.0, reps=3)
+    assert shapes == {(3, 2), (2, 5)}
+
+
+def test_aggregate_table_matches_the_statistics_and_the_unbatched_bootstrap(results):
+    runs, _ = results
+    table = report.aggregate_table(runs, reps=300, seed=3)
+    assert list(table.index) == ["td3bc", "iql", "eabc", "eabc K=5"]
+    eabc = runs[(runs["algo"] == "eabc") & (runs["variant"] == "")]
+    per_task = [g["final_score"].to_numpy() for _, g in eabc.groupby("dataset")]
+    row = table.loc["eabc"]
+    assert (row["tasks"], row["runs"]) == (2, 6)
+    assert row["iqm"] == pytest.approx(stats.trim_mean(eabc["final_score"], 0.25))
+    assert row["mean"] == pytest.approx(eabc.groupby("dataset")["final_score"].mean().mean())
+    assert row["median"] == pytest.approx(row["mean"])  # the median of two task means
+    gap = eabc.groupby("dataset")["final_score"].agg(lambda x: np.maximum(0, 100 - x).mean())
+    assert row["optimality_gap"] == pytest.approx(gap.mean())
+    everything = lambda s: [f(s) for f in report.STATISTICS.values()]
+    low, high = report.stratified_bootstrap_ci(per_task, everything, reps=300, seed=3)
+    for i, name in enumerate(report.STATISTICS):
+        assert row[f"{name}_low"] == pytest.approx(low[i])
+        assert row[f"{name}_high"] == pytest.approx(high[i])
+        assert row[f"{name}_low"] <= row[name] <= row[f"{name}_high"]
+
+
+def test_performance_profile_is_the_hand_computed_step_function():
+    tasks = [np.array([10.0, 20.0, 30.0]), np.array([40.0, 50.0])]
+    taus = [0.0, 15.0, 20.0, 25.0, 45.0, 60.0]
+    # task 1 above tau: 3/3, 2/3, 1/3 (20 is not above 20), 1/3, 0, 0; task 2: 1, 1, 1, 1, 1/2, 0
+    expected = [1.0, (2 / 3 + 1) / 2, (1 / 3 + 1) / 2, (1 / 3 + 1) / 2, 0.25, 0.0]
+    np.testing.assert_allclose(report.performance_profile(tasks, taus), expected)
+    fine = np.linspace(-10, 110, 241)
+    profile = report.performance_profile(tasks, fine)
+    assert np.all(np.diff(profile) <= 0) and profile[0] == 1.0 and profile[-1] == 0.0
+    assert len(np.unique(profile)) == 6  # one step down at each distinct score
+
+
+# Figures and the report
+
+
+def test_ablation_holds_the_other_settings_fixed(results):
+    runs, _ = results
+    assert report.ablation_values(runs, "num_critics") == [5.0, 10.0]
+    assert report.ablation_values(runs, "confidence_level") == [0.25]
+    assert report.ablation_values(runs, "pessimism") == ["mean-std"]
+    p_arm = runs[(runs["algo"] == "eabc") & (runs["variant"] == "")].copy()
+    p_arm["variant"], p_arm["confidence_level"] = "p=0.5", 0.5
+    p_arm["run_id"] += "_p"
+    both = pd.concat([runs, p_arm])
+    assert report.ablation_values(both, "num_critics") == [5.0, 10.0]  # p=0.5 runs left out
+    assert report.ablation_values(both, "confidence_level") == [0.25, 0.5]  # K=5 runs left out
+    assert report.ablation_values(both, "num_critics", algo="td3bc") == [2.0]
+
+
+def test_runtime_table_is_time_per_million_steps(results):
+    runs, _ = results
+    table = report.runtime_table(runs)
+    hours = (1e6 / runs["steps_per_s"] / 3600).groupby(labelled(runs)).agg(["mean", "std"])
+    for label in LEVELS:
+        assert table.at[label, "mean"] == pytest.approx(hours.at[label, "mean"])
+        assert table.at[label, "std"] == pytest.approx(hours.at[label, "std"])
+    assert table.at["eabc", "mean"] > table.at["td3bc", "mean"]
+
+
+def test_write_report_writes_every_file_and_the_table_matches_the_input(results, written):
+    runs, _ = results
+    out, paths = written
+    expected = {
+        "table.md",
+        "table.html",
+        "table.tex",
+        "aggregate.md",
+        "curves.png",
+        "runtime.png",
+        "profiles.png",
+        "ablation_num_critics.png",
+        "report.md",
+    }
+    assert set(paths) == expected == {p.name for p in out.iterdir()}
+    for name, path in paths.items():
+        assert path == out / name and path.stat().st_size > 0
+        if name.endswith(".png"):
+            assert path.read_bytes()[:8] == PNG and path.stat().st_size > 5000
+    rows = markdown_rows(paths["table.md"].read_text())
+    for (dataset, label), row in grouped(runs).iterrows():
+        cell = rows[dataset][["td3bc", "iql", "eabc", "eabc K=5"].index(label)]
+        mean, std = (float(x) for x in cell.strip("*").split(" ± "))
+        assert abs(mean - row["mean"]) <= 0.05 + 1e-9 and abs(std - row["std"]) <= 0.05 + 1e-9
+    text = paths["report.md"].read_text()
+    for name in expected - {"report.md", "aggregate.md", "table.md"}:
+        assert f"({name})" in text
+    assert paths["table.md"].read_text() in text and "IQM" in text
+
+
+def test_bad_input_gives_clear_errors(results):
+    runs, evaluations = results
+    with pytest.raises(ValueError, match="final_score"):
+        report.score_table(runs.drop(columns="final_score"))
+    with pytest.raises(ValueError, match="unknown ablation parameter"):
+        report.plot_ablation(runs, evaluations, "alpha", "unused.png")
+    with pytest.raises(ValueError, match="no runs of 'cql'"):
+        report.plot_ablation(runs, evaluations, "num_critics", "unused.png", algo="cql")
+    with pytest.raises(ValueError, match="at least one run"):
+        report.stratified_bootstrap_ci([np.ones(3), np.array([])], np.mean)
+    with pytest.raises(ValueError, match="finite"):
+        report.iqm([1.0, np.nan])
