@@ -97,3 +97,35 @@ def test_data_commands(tmp_path, capsys, monkeypatch):
     assert exported.env_id == "Hopper-v4" and exported.ref_max_score == original.ref_max_score
     with pytest.raises(SystemExit, match="exists already"):
         main(["data", "export", "hopper-random", "--cache-dir", str(tmp_path)])
+
+
+def test_other_algorithms_and_any_setting_from_the_command_line(tmp_path, npz, capsys):
+    common = ["--dataset", str(npz), "--steps", "100", "--log-interval", "100",
+              "--eval-interval", "100", "--checkpoint-interval", "100", "--eval-episodes", "1",
+              "--no-progress"]  # fmt: skip
+    run_dir = tmp_path / "edac"
+    main(["train", *common, "--algo", "edac-10", "--num-critics", "4",
+          "--set", "eta=0.5", "hidden_dims=16,16", "--run-dir", str(run_dir)])  # fmt: skip
+    assert json.loads(capsys.readouterr().out)["steps"] == 100
+    agent = json.loads((run_dir / "config.json").read_text())["agent"]
+    assert agent["eta"] == 0.5 and agent["num_critics"] == 4 and agent["hidden_dims"] == [16, 16]
+    with pytest.raises(SystemExit, match="bc has no setting.*eta"):
+        main(["train", *common, "--algo", "bc", "--set", "eta=1", "--run-dir", str(tmp_path / "b")])
+    with pytest.raises(SystemExit, match="unknown algorithm 'nope'"):
+        main(["train", *common, "--algo", "nope", "--run-dir", str(tmp_path / "n")])
+
+
+def test_sac_command_trains_and_resumes(tmp_path, capsys):
+    run_dir = tmp_path / "sac"
+    args = ["sac", "--env", "Pendulum-v1", "--steps", "400", "--start-steps", "200",
+            "--update-after", "100", "--eval-interval", "200", "--snapshot-interval", "200",
+            "--checkpoint-interval", "200", "--eval-episodes", "1", "--run-dir", str(run_dir),
+            "--no-progress"]  # fmt: skip
+    main(args)
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["steps"] == 400 and summary["env_id"] == "Pendulum-v1"
+    assert sorted(p.name for p in (run_dir / "snapshots").iterdir()) == [
+        "actor_00000200.npz", "actor_00000400.npz"
+    ]  # fmt: skip
+    main(["sac", "--resume", str(run_dir), "--no-progress"])  # already finished: nothing to do
+    assert json.loads(capsys.readouterr().out)["steps"] == 400

@@ -34,6 +34,9 @@ class Train:
 
     config: Annotated[TrainConfig, tyro.conf.OmitArgPrefixes]
     agent: Annotated[AgentOverrides, tyro.conf.OmitArgPrefixes]
+    set: tuple[str, ...] = ()
+    """Any other setting of the algorithm as KEY=VALUE, e.g. eta=0.5, expectile=0.8,
+    hidden_dims=512,512 (the settings are listed in the README and in config.json of a run)."""
     run_dir: str | None = None
     """Where the run's config, checkpoint, log.csv, TensorBoard events and curve.png go
     (default runs/DATASET_ALGO_seedS)."""
@@ -209,13 +212,25 @@ def sweep_spec(cmd: Sweep) -> dict:
     return spec
 
 
+def parse_settings(items: tuple[str, ...]) -> dict:
+    """``KEY=VALUE`` strings as settings; a comma makes a tuple (``hidden_dims=512,512``)."""
+    settings = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise ValueError(f"bad --set {item!r}; use KEY=VALUE")
+        parts = [_parse_value(v) for v in value.split(",")]
+        settings[key] = tuple(parts) if "," in value else parts[0]
+    return settings
+
+
 def _parse_value(text: str):
     for kind in (int, float):
         try:
             return kind(text)
         except ValueError:
             pass
-    return text
+    return {"true": True, "false": False}.get(text.lower(), text)
 
 
 def run_sweep(cmd: Sweep) -> None:
@@ -289,7 +304,8 @@ def run_train(cmd: Train) -> dict:
     else:
         config = cmd.config
         run_dir = cmd.run_dir or f"runs/{Path(config.dataset).stem}_{config.algo}_seed{config.seed}"
-        run = trainer.start(config, run_dir, dataclasses.asdict(cmd.agent))
+        overrides = dataclasses.asdict(cmd.agent) | parse_settings(cmd.set)
+        run = trainer.start(config, run_dir, overrides)
     print(f"run directory: {run.run_dir}", file=sys.stderr)
     summary = trainer.train(run, progress=cmd.progress)
     print(json.dumps(summary, indent=2))

@@ -1,0 +1,140 @@
+"""Steps/s of every algorithm, and of seed groups in the two layouts (vmap vs one process per core).
+
+    python benchmarks/algorithms.py                     # every algorithm, hopper-sized data
+    python benchmarks/algorithms.py --algos eabc td3bc  # a subset
+    python benchmarks/algorithms.py --seeds 5           # also: 5 EABC seeds vmapped vs per core
+
+Each figure is the median of ``--repeats`` compiled chunks of ``--steps`` gradient steps (batch 256)
+on a 1M-transition dataset with hopper's shapes (11-d observations, 3-d actions) resident in device
+memory, the same ``train_chunk`` the trainer runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import os
+import statistics
+import subprocess
+import sys
+import time
+
+OBS_DIM, ACT_DIM = 11, 3
+
+
+def fake_data(n: int = 1_000_000):
+    import jax.numpy as jnp
+    import numpy as np
+
+    from eabc.agents.common import Batch
+
+    rng = np.random.default_rng(0)
+    return Batch(
+        observations=jnp.asarray(rng.normal(size=(n, OBS_DIM)), jnp.float32),
+        actions=jnp.asarray(rng.uniform(-1, 1, size=(n, ACT_DIM)), jnp.float32),
+        rewards=jnp.asarray(rng.normal(size=n), jnp.float32),
+        next_observations=jnp.asarray(rng.normal(size=(n, OBS_DIM)), jnp.float32),
+        dones=jnp.zeros(n, jnp.float32),
+    )
+
+
+def agent(algo: str, steps_total: int = 1_000_000):
+    import dataclasses
+
+    import jax
+
+    from eabc.agents import get_algorithm
+
+    algorithm = get_algorithm(algo)
+    config = algorithm.preset
+    fields = {f.name for f in dataclasses.fields(config)}
+    if "confidence_level" in fields and algo == "eabc":
+        config = dataclasses.replace(config, confidence_level=0.5)
+    if "total_steps" in fields:
+        config = dataclasses.replace(config, total_steps=steps_total)
+    state = algorithm.module.init(jax.random.PRNGKey(0), OBS_DIM, ACT_DIM, config)
+    update = functools.partial(algorithm.module.update, config=config, max_action=1.0)
+    return state, update
+
+
+def measure(algo: str, steps: int, repeats: int, seeds: int = 1) -> list[float]:
+    """Total steps/s (summed over ``seeds`` vmapped seeds when seeds > 1)."""
+    import jax
+
+    from eabc.training.trainer import train_chunk, train_chunk_seeds
+
+    data = fake_data()
+    state, update = agent(algo)
+    key = jax.random.PRNGKey(1)
+    if seeds > 1:
+        state = jax.tree.map(lambda x: jax.numpy.stack([x] * seeds), state)
+        key = jax.random.split(key, seeds)
+        chunk = train_chunk_seeds
+    else:
+        chunk = train_chunk
+    state, key, _ = chunk(state, key, data, update, 256, steps)  # compile and warm up
+    jax.block_until_ready(state)
+    rates = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        state, key, metrics = chunk(state, key, data, update, 256, steps)
+        jax.block_until_ready((state, metrics))
+        rates.append(seeds * steps / (time.perf_counter() - start))
+    return rates
+
+
+def per_core(algo: str, steps: int, repeats: int) -> list[float]:
+    """One single-threaded process per core, side by side: each one's median steps/s."""
+    from eabc.experiments.sweep import SINGLE_THREAD
+
+    env = {**os.environ, **SINGLE_THREAD}
+    procs = [
+        subprocess.Popen(
+            ["taskset", "-c", str(core), sys.executable, __file__, "--worker", algo,
+             str(steps), str(repeats)],
+            env=env, stdout=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        for core in sorted(os.sched_getaffinity(0))
+    ]
+    return [statistics.median(json.loads(p.communicate()[0])) for p in procs]
+
+
+def main() -> None:
+    from eabc.agents import ALGORITHMS
+
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--algos", nargs="*", default=list(ALGORITHMS))
+    parser.add_argument("--steps", type=int, default=500, help="steps per timed chunk")
+    parser.add_argument("--repeats", type=int, default=3, help="timed chunks (median)")
+    parser.add_argument("--seeds", type=int, default=0, help="also compare layouts for N seeds")
+    parser.add_argument("--worker", nargs=3, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.worker:
+        algo, steps, repeats = args.worker
+        print(json.dumps(measure(algo, int(steps), int(repeats))))
+        return
+
+    import jax
+
+    print(f"{jax.default_backend()} backend, {os.cpu_count()} cores; hopper shapes, batch 256\n")
+    print(f"{'algorithm':14s} {'steps/s':>9s} {'h per 1M steps':>15s}")
+    for algo in args.algos:
+        steps = max(args.steps // 5, 20) if algo == "edac" else args.steps
+        rate = statistics.median(measure(algo, steps, args.repeats))
+        print(f"{algo:14s} {rate:9.1f} {1e6 / rate / 3600:15.2f}", flush=True)
+    if args.seeds > 1:
+        print(f"\n{args.seeds} EABC (K = 10) seeds, total steps/s:")
+        vmapped = statistics.median(measure("eabc", args.steps, args.repeats, args.seeds))
+        print(f"  one process, seeds vmapped:      {vmapped:8.1f}")
+        alone = statistics.median(measure("eabc", args.steps, args.repeats))
+        print(f"  one process, one seed at a time: {alone:8.1f}")
+        cores = per_core("eabc", args.steps, args.repeats)
+        print(f"  one single-threaded process per core, side by side: {sum(cores):8.1f} "
+              f"({' + '.join(f'{r:.1f}' for r in cores)})")  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
