@@ -146,7 +146,8 @@ class Sweep:
     steps: int | None = None
     """Gradient steps per run (default the spec's, else 1M), e.g. to shorten a preset."""
     grid: tuple[str, ...] = ()
-    """Extra grid axes as KEY=V1,V2 (e.g. num_critics=5,10 pessimism=min,mean-std)."""
+    """Extra grid axes as KEY=V1,V2 (e.g. num_critics=5,10 pessimism=min,mean-std); put
+    tuple-valued settings such as hidden_dims in a YAML spec."""
     backend: Literal["local", "ray"] = "local"
     """local: a process pool on this machine; ray: one Ray task per job."""
     ray_address: str = "auto"
@@ -258,6 +259,7 @@ def run_sweep(cmd: Sweep) -> None:
         return
     layout = sweep.default_layout() if cmd.layout == "auto" else cmd.layout
     job_list = sweep.jobs(runs, root, layout)
+    sweep.prepare_datasets([job[0] for job in job_list])
     root.mkdir(parents=True, exist_ok=True)
     (root / "sweep.yaml").write_text(yaml.safe_dump(sweep_spec(cmd), sort_keys=False))
     try:

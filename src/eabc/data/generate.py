@@ -225,7 +225,7 @@ def save_hdf5(dataset: Dataset, path: str | os.PathLike) -> Path:
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
+    tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")  # two makers never share a file
     with h5py.File(tmp, "w") as f:
         for key in _ARRAYS:
             f.create_dataset(

@@ -264,6 +264,18 @@ def plan(runs: list[RunSpec], root: Path) -> list[dict[str, Any]]:
     return rows
 
 
+def prepare_datasets(runs: list[RunSpec], log=print) -> None:
+    """Make the missing built-in datasets once, here, before jobs that share them start."""
+    seen = set()
+    for run in runs:
+        config = run.train_config()
+        path = generate.dataset_path(config.dataset, config.cache_dir)
+        if config.dataset in generate.builtin_names() and not path.exists() and path not in seen:
+            seen.add(path)
+            log(f"making {config.dataset} into {path}")
+            generate.make(config.dataset, path)
+
+
 def default_layout() -> str:
     import jax  # noqa: PLC0415
 
