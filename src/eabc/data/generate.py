@@ -206,7 +206,10 @@ def rollout(
         "timeouts": np.zeros(num_transitions, bool),
     }
     obs, _ = env.reset(seed=seed)
-    for i in tqdm(range(num_transitions), desc=desc, unit="step", mininterval=1.0, leave=False):
+    bar = tqdm(
+        range(num_transitions), desc=desc, unit="step", mininterval=1.0, leave=False, disable=None
+    )
+    for i in bar:  # disable=None: no bar when the output is not a terminal (logs, CI)
         action = rng.uniform(low, high) if act is None else act(obs, rng)
         next_obs, reward, terminated, truncated, _ = env.step(action)
         out["observations"][i], out["actions"][i], out["rewards"][i] = obs, action, reward
