@@ -6,9 +6,9 @@ import jax
 import numpy as np
 import pytest
 from handcalc import ACT, OBS, np_mlp, np_q
+from learning import MARGIN, late_gain
 
 from eabc.agents import bc, eabc, wpc
-from eabc.training import trainer
 
 
 def test_bc_loss_and_step_match_hand_computation(batch):
@@ -59,18 +59,5 @@ def test_wpc_update_steps_value_every_step_and_actor_every_second(batch):
 
 @pytest.mark.parametrize("algo", ["bc", "wpc"])
 def test_learning_improves_on_the_untrained_policy(tmp_path, pendulum_dataset, algo):
-    config = trainer.TrainConfig(
-        dataset="pendulum-swingup",
-        algo=algo,
-        steps=3000,
-        log_interval=100,
-        eval_interval=1000,
-        checkpoint_interval=1000,
-        eval_episodes=5,
-        env="Pendulum-v1",
-    )
-    run = trainer.start(config, tmp_path / algo, {"hidden_dims": (64, 64)}, pendulum_dataset)
-    untrained = trainer.evaluate(run)["score"]
-    trainer.train(run, progress=False)
-    late = np.mean([run.state["evaluations"][s]["score"] for s in ("2000", "3000")])
-    assert late > untrained + 30, (untrained, run.state["evaluations"])
+    untrained, late, evaluations = late_gain(tmp_path, pendulum_dataset, algo, {})
+    assert late > untrained + MARGIN, (untrained, evaluations)

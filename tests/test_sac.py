@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from handcalc import ACT, OBS, B, member, np_mlp, np_q
+from learning import MARGIN, late_gain
 
 from eabc import networks
 from eabc.agents import sac
@@ -165,21 +166,6 @@ def test_edac_config_rejects_a_single_critic():
 
 
 def test_offline_edac_improves_on_the_untrained_policy(tmp_path, pendulum_dataset):
-    from eabc.training import trainer  # noqa: PLC0415
-
-    config = trainer.TrainConfig(
-        dataset="pendulum-swingup",
-        algo="edac-10",
-        steps=3000,
-        log_interval=100,
-        eval_interval=1000,
-        checkpoint_interval=1000,
-        eval_episodes=5,
-        env="Pendulum-v1",
-    )
-    overrides = dict(num_critics=5, hidden_dims=(64, 64))
-    run = trainer.start(config, tmp_path / "edac", overrides, dataset=pendulum_dataset)
-    untrained = trainer.evaluate(run)["score"]
-    trainer.train(run, progress=False)
-    late = np.mean([run.state["evaluations"][s]["score"] for s in ("2000", "3000")])
-    assert late > untrained + 30, (untrained, run.state["evaluations"])
+    overrides = dict(num_critics=5)
+    untrained, late, evaluations = late_gain(tmp_path, pendulum_dataset, "edac-10", overrides)
+    assert late > untrained + MARGIN, (untrained, evaluations)

@@ -8,7 +8,7 @@ from __future__ import annotations
 import dataclasses
 from types import ModuleType
 
-from eabc.agents import eabc, sac
+from eabc.agents import bc, cql, eabc, iql, sac, wpc
 
 
 @dataclasses.dataclass(frozen=True)
@@ -28,6 +28,10 @@ class Algorithm:
 ALGORITHMS: dict[str, Algorithm] = {
     **{name: Algorithm(name, eabc, preset) for name, preset in eabc.PRESETS.items()},
     **{name: Algorithm(name, sac, sac.PRESETS[name]) for name in ("sac-n", "edac", "edac-10")},
+    "bc": Algorithm("bc", bc, bc.PRESETS["bc"]),
+    "wpc": Algorithm("wpc", wpc, wpc.PRESETS["wpc"]),
+    "iql": Algorithm("iql", iql, iql.PRESETS["iql"]),
+    **{name: Algorithm(name, cql, preset) for name, preset in cql.PRESETS.items()},
 }
 
 

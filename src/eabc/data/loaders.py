@@ -227,7 +227,6 @@ def export_minari(dataset: Dataset, dataset_id: str, overwrite: bool = False) ->
     return dataset_id
 
 
-
 def _box(array: np.ndarray):
     from gymnasium.spaces import Box  # noqa: PLC0415
 
