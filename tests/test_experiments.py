@@ -99,7 +99,7 @@ def two_datasets(tmp_path, pendulum_dataset):
 
 def test_local_sweep_is_interrupted_resumed_and_stored(tmp_path, two_datasets):
     root = tmp_path / "sweep"
-    spec = _spec(two_datasets, steps=600)
+    spec = _spec(two_datasets, steps=400)
     runs = sweep.expand(spec)
     assert len(runs) == 8
     root.mkdir()
@@ -128,7 +128,7 @@ def test_local_sweep_is_interrupted_resumed_and_stored(tmp_path, two_datasets):
     assert len(table) == 8 and set(table["status"]) == {"done"}
     for run in interrupted:  # resumed, not restarted: one log row per step
         steps = evaluations[evaluations.run_id == f"runs/{run.run_id}"]["step"].tolist()
-        assert steps == [100, 200, 300, 400, 500, 600], steps
+        assert steps == [100, 200, 300, 400], steps
     # The stored scores are the run directories' own numbers.
     for run in runs:
         row = table[table.run_id == f"runs/{run.run_id}"].iloc[0]
