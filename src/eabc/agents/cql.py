@@ -115,29 +115,22 @@ def _optimizers(config: CQLConfig) -> tuple[optax.GradientTransformation, ...]:
 
 
 def init(key: jax.Array, obs_dim: int, act_dim: int, config: CQLConfig) -> CQLState:
-    actor_key, critic_key = jax.random.split(key)
-    actor = networks.init_mlp(actor_key, (obs_dim, *config.hidden_dims, 2 * act_dim))
-    critic = networks.init_mlp(
-        critic_key, (obs_dim + act_dim, *config.hidden_dims, 1), num_members=NUM_CRITICS
+    """SAC's initial state (twin critics, alpha = 1) plus log(alpha') and its optimiser."""
+    backbone = sac.SACConfig(
+        num_critics=NUM_CRITICS,
+        actor_lr=config.actor_lr,
+        critic_lr=config.critic_lr,
+        alpha_lr=config.alpha_lr,
+        target_entropy=config.target_entropy,
+        hidden_dims=config.hidden_dims,
     )
-    log_alpha = jnp.zeros((), jnp.float32)
+    base = sac.init(key, obs_dim, act_dim, backbone)
     log_alpha_prime = jnp.asarray(INIT_LOG_ALPHA_PRIME, jnp.float32)
-    actor_tx, critic_tx, alpha_tx, alpha_prime_tx = _optimizers(config)
-    target_entropy = (
-        -float(act_dim) if config.target_entropy is None else float(config.target_entropy)
-    )
+    fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(base)}
     return CQLState(
-        actor=actor,
-        critic=critic,
-        critic_target=critic,
-        log_alpha=log_alpha,
+        **fields,
         log_alpha_prime=log_alpha_prime,
-        actor_opt=actor_tx.init(actor),
-        critic_opt=critic_tx.init(critic),
-        alpha_opt=alpha_tx.init(log_alpha),
-        alpha_prime_opt=alpha_prime_tx.init(log_alpha_prime),
-        step=jnp.zeros((), jnp.int32),
-        target_entropy=target_entropy,
+        alpha_prime_opt=optax.adam(config.alpha_prime_lr).init(log_alpha_prime),
     )
 
 
