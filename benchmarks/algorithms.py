@@ -20,23 +20,9 @@ import subprocess
 import sys
 import time
 
+from speed import fake_data  # benchmarks/speed.py, beside this file
+
 OBS_DIM, ACT_DIM = 11, 3
-
-
-def fake_data(n: int = 1_000_000):
-    import jax.numpy as jnp
-    import numpy as np
-
-    from eabc.agents.common import Batch
-
-    rng = np.random.default_rng(0)
-    return Batch(
-        observations=jnp.asarray(rng.normal(size=(n, OBS_DIM)), jnp.float32),
-        actions=jnp.asarray(rng.uniform(-1, 1, size=(n, ACT_DIM)), jnp.float32),
-        rewards=jnp.asarray(rng.normal(size=n), jnp.float32),
-        next_observations=jnp.asarray(rng.normal(size=(n, OBS_DIM)), jnp.float32),
-        dones=jnp.zeros(n, jnp.float32),
-    )
 
 
 def agent(algo: str, steps_total: int = 1_000_000):
@@ -64,7 +50,7 @@ def measure(algo: str, steps: int, repeats: int, seeds: int = 1) -> list[float]:
 
     from eabc.training.trainer import train_chunk, train_chunk_seeds
 
-    data = fake_data()
+    data = fake_data(OBS_DIM, ACT_DIM)
     state, update = agent(algo)
     key = jax.random.PRNGKey(1)
     if seeds > 1:
@@ -91,9 +77,20 @@ def per_core(algo: str, steps: int, repeats: int) -> list[float]:
     env = {**os.environ, **SINGLE_THREAD}
     procs = [
         subprocess.Popen(
-            ["taskset", "-c", str(core), sys.executable, __file__, "--worker", algo,
-             str(steps), str(repeats)],
-            env=env, stdout=subprocess.PIPE, text=True,
+            [
+                "taskset",
+                "-c",
+                str(core),
+                sys.executable,
+                __file__,
+                "--worker",
+                algo,
+                str(steps),
+                str(repeats),
+            ],
+            env=env,
+            stdout=subprocess.PIPE,
+            text=True,
         )  # fmt: skip
         for core in sorted(os.sched_getaffinity(0))
     ]

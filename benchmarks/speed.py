@@ -61,29 +61,35 @@ def matmul_peak(seconds: float = 0.5, tries: int = 4) -> float:
     return best
 
 
-def measure(env: str, k: int, steps: int, repeats: int) -> list[float]:
-    """steps/s of the real training chunk (sampling from a device-resident dataset included)."""
-    import dataclasses
-    import functools
-
-    import jax
+def fake_data(obs_dim: int, act_dim: int, n: int = 1_000_000):
+    """A random device-resident dataset of ``n`` transitions (speed does not depend on values)."""
     import jax.numpy as jnp
     import numpy as np
 
-    from eabc.agents import eabc
     from eabc.agents.common import Batch
-    from eabc.training.trainer import train_chunk
 
-    obs_dim, act_dim = SHAPES[env]
     rng = np.random.default_rng(0)
-    n = 1_000_000
-    data = Batch(
+    return Batch(
         observations=jnp.asarray(rng.normal(size=(n, obs_dim)), jnp.float32),
         actions=jnp.asarray(rng.uniform(-1, 1, size=(n, act_dim)), jnp.float32),
         rewards=jnp.asarray(rng.normal(size=n), jnp.float32),
         next_observations=jnp.asarray(rng.normal(size=(n, obs_dim)), jnp.float32),
         dones=jnp.zeros(n, jnp.float32),
     )
+
+
+def measure(env: str, k: int, steps: int, repeats: int) -> list[float]:
+    """steps/s of the real training chunk (sampling from a device-resident dataset included)."""
+    import dataclasses
+    import functools
+
+    import jax
+
+    from eabc.agents import eabc
+    from eabc.training.trainer import train_chunk
+
+    obs_dim, act_dim = SHAPES[env]
+    data = fake_data(obs_dim, act_dim)
     config = dataclasses.replace(eabc.PRESETS["eabc"], num_critics=k, confidence_level=0.5)
     state = eabc.init(jax.random.PRNGKey(0), obs_dim, act_dim, config)
     update = functools.partial(eabc.update, config=config, max_action=1.0)

@@ -90,19 +90,10 @@ PRESETS: dict[str, CQLConfig] = {
 
 
 @flax.struct.dataclass
-class CQLState:
-    actor: networks.Params
-    critic: networks.Params
-    critic_target: networks.Params
-    log_alpha: jax.Array
-    log_alpha_prime: jax.Array
+class CQLState(sac.SACState):
+    log_alpha_prime: jax.Array = None
     """log(alpha'), only trained with ``lagrange``."""
-    actor_opt: optax.OptState
-    critic_opt: optax.OptState
-    alpha_opt: optax.OptState
-    alpha_prime_opt: optax.OptState
-    step: jax.Array
-    target_entropy: float = flax.struct.field(pytree_node=False, default=0.0)
+    alpha_prime_opt: optax.OptState = None
 
 
 def _optimizers(config: CQLConfig) -> tuple[optax.GradientTransformation, ...]:
