@@ -119,3 +119,32 @@ def test_medium_expert_is_medium_then_expert(tiny_zoo, tmp_path):
         me.observations, np.concatenate([medium.observations, expert.observations])
     )
     np.testing.assert_array_equal(me.actions, np.concatenate([medium.actions, expert.actions]))
+
+
+def test_packed_run_resumes_without_its_replay_buffer(tiny_zoo, tmp_path):
+    run_dir = tiny_zoo[0].parent / "run"
+    packed = zoo.pack(run_dir, tmp_path / "packed")
+    assert not (packed / online.REPLAY).exists()
+    snapshots = sorted((packed / online.SNAPSHOTS).glob("actor_*.npz"))
+    assert [p.name for p in snapshots] == sorted(
+        p.name for p in (run_dir / online.SNAPSHOTS).glob("actor_*.npz")
+    )
+    # Half-size snapshots, and build() reads them exactly as it reads the float32 originals.
+    for name in (snapshots[0].name, snapshots[-1].name):
+        original = zoo._rounded(zoo.load_actor(run_dir / online.SNAPSHOTS / name))
+        for k, v in zoo.load_actor(packed / online.SNAPSHOTS / name).items():
+            np.testing.assert_array_equal(v, original[k])
+    # Continue the packed run past its end: it resumes from the checkpoint's networks and, once
+    # the refilled buffer holds update_after transitions, trains them on.
+    config = json.loads((packed / "config.json").read_text())
+    config["sac"]["steps"] = 4500
+    (packed / "config.json").write_text(json.dumps(config))
+    run = online.resume_sac(packed)
+    assert run.state["step"] == 3000 and run.buffer.size == 0
+    before = np.asarray(run.state["agent"].actor["w0"]).copy()
+    np.testing.assert_array_equal(
+        before, online.resume_sac(run_dir).state["agent"].actor["w0"]
+    )
+    summary = online.train_sac(run, progress=False)
+    assert summary["steps"] == 4500
+    assert not np.array_equal(before, np.asarray(run.state["agent"].actor["w0"]))

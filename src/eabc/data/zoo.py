@@ -225,6 +225,27 @@ def _training_returns(run_dir: Path) -> dict[int, float]:
         }
 
 
+def pack(run_dir: str | os.PathLike, dest: str | os.PathLike) -> Path:
+    """Copy what continuing an ``eabc sac`` run needs into ``dest``, small enough to commit.
+
+    Keeps the config, the log, the checkpoint (networks, optimisers, temperature, step, random
+    states) and the actor snapshots (float16, which is all :func:`build` uses of them), and drops the
+    replay buffer: ``eabc sac --resume`` on a copy of ``dest`` refills it as training goes on.
+    """
+    from eabc.training import checkpoint  # noqa: PLC0415
+    from eabc.training.online import SNAPSHOTS  # noqa: PLC0415
+
+    run_dir, dest = Path(run_dir), Path(dest)
+    if not (run_dir / checkpoint.CHECKPOINT).exists():
+        raise DatasetError(f"{run_dir} has no checkpoint yet; nothing to pack")
+    (dest / SNAPSHOTS).mkdir(parents=True, exist_ok=True)
+    for name in (checkpoint.CONFIG, "log.csv", checkpoint.CHECKPOINT):
+        shutil.copy2(run_dir / name, dest / name)
+    for path in sorted((run_dir / SNAPSHOTS).glob("actor_*.npz")):
+        _save(dest / SNAPSHOTS / path.name, load_actor(path))
+    return dest
+
+
 def main(argv: list[str] | None = None) -> None:
     import argparse  # noqa: PLC0415
 
@@ -237,8 +258,18 @@ def main(argv: list[str] | None = None) -> None:
     b.add_argument("env", help="hopper, halfcheetah or walker2d")
     b.add_argument("--root", default=None, help="zoo directory (default: the package's)")
     b.add_argument("--episodes", type=int, default=10)
+    b.add_argument("--medium-return", type=float, default=None,
+                   help="return the medium policy aims at (default: D4RL's medium level)")  # fmt: skip
+    p = sub.add_parser(
+        "pack", help="copy a SAC run's checkpoint, log and float16 snapshots (no replay buffer)"
+    )
+    p.add_argument("run_dir")
+    p.add_argument("dest")
     args = parser.parse_args(argv)
-    card_ = build(args.run_dir, args.env, args.root, args.episodes)
+    if args.command == "pack":
+        print(pack(args.run_dir, args.dest))
+        return
+    card_ = build(args.run_dir, args.env, args.root, args.episodes, medium_return=args.medium_return)
     print(json.dumps({k: card_[k] for k in ("expert", "medium")}, indent=2))
 
 
