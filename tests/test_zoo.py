@@ -142,9 +142,7 @@ def test_packed_run_resumes_without_its_replay_buffer(tiny_zoo, tmp_path):
     run = online.resume_sac(packed)
     assert run.state["step"] == 3000 and run.buffer.size == 0
     before = np.asarray(run.state["agent"].actor["w0"]).copy()
-    np.testing.assert_array_equal(
-        before, online.resume_sac(run_dir).state["agent"].actor["w0"]
-    )
+    np.testing.assert_array_equal(before, online.resume_sac(run_dir).state["agent"].actor["w0"])
     summary = online.train_sac(run, progress=False)
     assert summary["steps"] == 4500
     assert not np.array_equal(before, np.asarray(run.state["agent"].actor["w0"]))

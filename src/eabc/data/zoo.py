@@ -269,7 +269,9 @@ def main(argv: list[str] | None = None) -> None:
     if args.command == "pack":
         print(pack(args.run_dir, args.dest))
         return
-    card_ = build(args.run_dir, args.env, args.root, args.episodes, medium_return=args.medium_return)
+    card_ = build(
+        args.run_dir, args.env, args.root, args.episodes, medium_return=args.medium_return
+    )
     print(json.dumps({k: card_[k] for k in ("expert", "medium")}, indent=2))
 
 
