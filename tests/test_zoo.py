@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 
 import h5py
 import numpy as np
@@ -146,3 +147,22 @@ def test_packed_run_resumes_without_its_replay_buffer(tiny_zoo, tmp_path):
     summary = online.train_sac(run, progress=False)
     assert summary["steps"] == 4500
     assert not np.array_equal(before, np.asarray(run.state["agent"].actor["w0"]))
+
+
+def test_cached_dataset_from_an_older_zoo_is_noticed(tiny_zoo, tmp_path):
+    root = tmp_path / "zoo"
+    shutil.copytree(tiny_zoo[0], root)
+    medium = generate.make(
+        "hopper-medium", tmp_path / "hopper-medium.hdf5", size=300, zoo_root=root
+    )
+    expert = generate.make(
+        "hopper-expert", tmp_path / "hopper-expert.hdf5", size=300, zoo_root=root
+    )
+    assert generate.is_current(medium, "hopper-medium", root)
+    assert generate.is_current(expert, "hopper-expert", root)
+    # A retrained medium policy makes the cached medium dataset stale, and only that one.
+    actor = zoo.load_actor(zoo.policy_path("hopper", "medium", root))
+    zoo._save(zoo.policy_path("hopper", "medium", root), {k: v + 0.01 for k, v in actor.items()})
+    assert not generate.is_current(medium, "hopper-medium", root)
+    assert generate.is_current(expert, "hopper-expert", root)
+    assert not generate.is_current(tmp_path / "missing.hdf5", "hopper-expert", root)

@@ -12,6 +12,7 @@ import warnings
 from collections.abc import Callable
 from pathlib import Path
 
+import h5py
 import numpy as np
 from tqdm.auto import tqdm
 
@@ -45,9 +46,30 @@ def dataset_path(name: str, cache: str | os.PathLike | None = None) -> Path:
 def load_or_make(name: str, cache_dir: str | os.PathLike | None = None, seed: int = 0) -> Dataset:
     """The cached dataset ``name``, made first if it is not in the cache yet."""
     path = dataset_path(name, cache_dir)
-    if not path.exists():
+    current = is_current(path, name)
+    if path.exists() and not current:
+        print(f"{path} was made from an older behaviour-policy zoo; making it again")
+    if not current:
         make(name, path, seed=seed)
     return load_file(path)
+
+
+def is_current(path: str | os.PathLike, name: str, zoo_root=None) -> bool:
+    """Whether ``path`` exists and was made from the zoo's present policies (see zoo.fingerprint)."""
+    from eabc.data import zoo  # noqa: PLC0415
+
+    path = Path(path)
+    if not path.exists():
+        return False
+    env_name, kind = tasks.parse_task(name)
+    if kind == "random":
+        return True
+    with h5py.File(path, "r") as f:
+        made_from = json.loads(f.attrs.get("metadata", "{}")).get("zoo")
+    try:
+        return made_from == zoo.fingerprint(env_name, kind, zoo_root)
+    except (DatasetError, FileNotFoundError):
+        return True  # no zoo here to compare with: the cached file is all there is
 
 
 MEDIUM_REPLAY_SIZE = {"hopper": 402_000, "halfcheetah": 202_000, "walker2d": 302_000}
@@ -92,6 +114,8 @@ def make(
     env = tasks.ENVS[env_name]
     size = size or default_size(name)
     metadata = {"recipe": RECIPES[kind], "seed": seed, "version": FORMAT_VERSION}
+    if kind != "random":
+        metadata["zoo"] = zoo.fingerprint(env_name, kind, zoo_root)
     if kind == "random":
         dataset = rollout(env.env_id, None, size, seed, desc=name)
     elif kind in ("medium", "expert"):
@@ -162,7 +186,7 @@ def _medium_replay(env_name: str, size: int, seed: int, zoo_root) -> tuple[Datas
 
 def _load_or_make_part(path: Path, size: int, seed: int, zoo_root) -> Dataset:
     """A part of medium-expert: the cached dataset if it was made with this seed and size."""
-    if path.exists():
+    if is_current(path, path.stem, zoo_root):
         cached = load_file(path)
         if cached.metadata.get("seed") == seed and cached.size == size:
             return cached

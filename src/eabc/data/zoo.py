@@ -93,6 +93,27 @@ def replay_schedule(env: str, root=None) -> list[tuple[int, int, str | None]]:
     return phases
 
 
+def fingerprint(env: str, kind: str, root=None) -> str | None:
+    """A digest of the zoo files the ``kind`` dataset of ``env`` is made from (None for random).
+
+    Stored in each made dataset's metadata, so a cached dataset made from an older zoo is noticed
+    and remade rather than silently reused.
+    """
+    import hashlib  # noqa: PLC0415
+
+    if kind == "random":
+        return None
+    digest = hashlib.sha256()
+    if kind == "medium-replay":
+        digest.update(json.dumps(card(env, root)["replay"], sort_keys=True).encode())
+        names = [p for _, _, p in replay_schedule(env, root) if p is not None]
+    else:
+        names = ["medium", "expert"] if kind == "medium-expert" else [kind]
+    for name in names:
+        digest.update(policy_path(env, name, root).read_bytes())
+    return digest.hexdigest()[:16]
+
+
 def stochastic_return(
     env_id: str, actor: dict[str, np.ndarray], episodes: int, seed: int
 ) -> tuple[float, float]:

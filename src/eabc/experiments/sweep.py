@@ -269,7 +269,11 @@ def prepare_datasets(runs: list[RunSpec], log=print) -> None:
     for run in runs:
         config = run.train_config()
         path = generate.dataset_path(config.dataset, config.cache_dir)
-        if config.dataset in generate.builtin_names() and not path.exists() and path not in seen:
+        if (
+            config.dataset in generate.builtin_names()
+            and path not in seen
+            and not generate.is_current(path, config.dataset)
+        ):
             seen.add(path)
             log(f"making {config.dataset} into {path}")
             generate.make(config.dataset, path)
