@@ -9,7 +9,8 @@ import pandas as pd
 import pytest
 from scipy import stats
 
-from eabc.experiments import report
+from eabc.experiments import figures, report
+from eabc.experiments import stats as aggregate
 
 DATASETS = ("walker2d-medium", "hopper-random")  # out of table order on purpose
 LEVELS = {"td3bc": 55.0, "iql": 45.0, "eabc": 70.0, "eabc K=5": 62.0}
@@ -184,52 +185,7 @@ def test_the_best_mean_of_each_row_is_bold_in_every_format(results):
     assert "$\\pm$" in tex["hopper-random"][0] and "&plusmn;" in html["hopper-random"][0]
 
 
-# Aggregate statistics
-
-
-@pytest.mark.parametrize("n", [7, 10, 13])
-def test_iqm_equals_scipy_trim_mean_with_fractional_quartile_boundaries(n):
-    x = np.random.default_rng(n).normal(50, 20, n)
-    assert 0.25 * n != int(0.25 * n)
-    assert report.iqm(x) == pytest.approx(stats.trim_mean(x, 0.25))
-    assert report.iqm(x) != pytest.approx(x.mean())
-    tasks = [x[:3], x[3:]]  # pooled over tasks of different sizes
-    assert report.iqm(tasks) == pytest.approx(stats.trim_mean(x, 0.25))
-
-
-def test_bootstrap_ci_contains_the_estimate_narrows_with_runs_and_is_reproducible():
-    rng = np.random.default_rng(1)
-    small, large = rng.normal(50, 10, (5, 3)), rng.normal(50, 10, (100, 3))
-    widths = []
-    for scores in (small, large):
-        for statistic in (report.iqm, report.aggregate_mean):
-            low, high = report.stratified_bootstrap_ci(scores, statistic, reps=500)
-            assert low <= statistic(scores) <= high
-        low, high = report.stratified_bootstrap_ci(scores, report.aggregate_mean, reps=500)
-        widths.append(high - low)
-    assert widths[1] < widths[0] / 2
-    again = report.stratified_bootstrap_ci(small, report.iqm, reps=500)
-    assert again == report.stratified_bootstrap_ci(small, report.iqm, reps=500)
-    assert again != report.stratified_bootstrap_ci(small, report.iqm, reps=500, seed=1)
-    tighter = report.stratified_bootstrap_ci(small, report.iqm, reps=500, alpha=0.5)
-    assert again[0] <= tighter[0] <= tighter[1] <= again[1]
-
-
-def test_bootstrap_resamples_runs_within_each_task():
-    # Constant within each task: any resample within tasks has the same mean; pooling would not.
-    matrix = np.array([[1.0, 5.0], [1.0, 5.0], [1.0, 5.0]])
-    assert report.stratified_bootstrap_ci(matrix, report.aggregate_mean, reps=300) == (3.0, 3.0)
-    assert report.stratified_bootstrap_ci(matrix, np.mean, reps=300) == (3.0, 3.0)
-    ragged = [np.full(2, 1.0), np.full(5, 5.0)]  # tasks with different numbers of seeds
-    iqm = stats.trim_mean(np.concatenate(ragged), 0.25)
-    assert report.stratified_bootstrap_ci(ragged, report.iqm, reps=300) == (iqm, iqm)
-    spread = [np.array([1.0, 9.0]), np.full(5, 5.0)]  # a task with spread gives a spread
-    low, high = report.stratified_bootstrap_ci(spread, report.aggregate_mean, reps=300)
-    assert low < high
-    shapes = set()
-    report.stratified_bootstrap_ci(matrix, lambda s: shapes.add(s.shape) or 0.0, reps=3)
-    report.stratified_bootstrap_ci(ragged, lambda s: shapes.add(tuple(map(len, s))) or 0.0, reps=3)
-    assert shapes == {(3, 2), (2, 5)}
+# Aggregate table
 
 
 def test_aggregate_table_matches_the_statistics_and_the_unbatched_bootstrap(results):
@@ -245,24 +201,12 @@ def test_aggregate_table_matches_the_statistics_and_the_unbatched_bootstrap(resu
     assert row["median"] == pytest.approx(row["mean"])  # the median of two task means
     gap = eabc.groupby("dataset")["final_score"].agg(lambda x: np.maximum(0, 100 - x).mean())
     assert row["optimality_gap"] == pytest.approx(gap.mean())
-    everything = lambda s: [f(s) for f in report.STATISTICS.values()]
-    low, high = report.stratified_bootstrap_ci(per_task, everything, reps=300, seed=3)
-    for i, name in enumerate(report.STATISTICS):
+    everything = lambda s: [f(s) for f in aggregate.STATISTICS.values()]
+    low, high = aggregate.stratified_bootstrap_ci(per_task, everything, reps=300, seed=3)
+    for i, name in enumerate(aggregate.STATISTICS):
         assert row[f"{name}_low"] == pytest.approx(low[i])
         assert row[f"{name}_high"] == pytest.approx(high[i])
         assert row[f"{name}_low"] <= row[name] <= row[f"{name}_high"]
-
-
-def test_performance_profile_is_the_hand_computed_step_function():
-    tasks = [np.array([10.0, 20.0, 30.0]), np.array([40.0, 50.0])]
-    taus = [0.0, 15.0, 20.0, 25.0, 45.0, 60.0]
-    # task 1 above tau: 3/3, 2/3, 1/3 (20 is not above 20), 1/3, 0, 0; task 2: 1, 1, 1, 1, 1/2, 0
-    expected = [1.0, (2 / 3 + 1) / 2, (1 / 3 + 1) / 2, (1 / 3 + 1) / 2, 0.25, 0.0]
-    np.testing.assert_allclose(report.performance_profile(tasks, taus), expected)
-    fine = np.linspace(-10, 110, 241)
-    profile = report.performance_profile(tasks, fine)
-    assert np.all(np.diff(profile) <= 0) and profile[0] == 1.0 and profile[-1] == 0.0
-    assert len(np.unique(profile)) == 6  # one step down at each distinct score
 
 
 # Figures and the report
@@ -270,16 +214,16 @@ def test_performance_profile_is_the_hand_computed_step_function():
 
 def test_ablation_holds_the_other_settings_fixed(results):
     runs, _ = results
-    assert report.ablation_values(runs, "num_critics") == [5.0, 10.0]
-    assert report.ablation_values(runs, "confidence_level") == [0.25]
-    assert report.ablation_values(runs, "pessimism") == ["mean-std"]
+    assert figures.ablation_values(runs, "num_critics") == [5.0, 10.0]
+    assert figures.ablation_values(runs, "confidence_level") == [0.25]
+    assert figures.ablation_values(runs, "pessimism") == ["mean-std"]
     p_arm = runs[(runs["algo"] == "eabc") & (runs["variant"] == "")].copy()
     p_arm["variant"], p_arm["confidence_level"] = "p=0.5", 0.5
     p_arm["run_id"] += "_p"
     both = pd.concat([runs, p_arm])
-    assert report.ablation_values(both, "num_critics") == [5.0, 10.0]  # p=0.5 runs left out
-    assert report.ablation_values(both, "confidence_level") == [0.25, 0.5]  # K=5 runs left out
-    assert report.ablation_values(both, "num_critics", algo="td3bc") == [2.0]
+    assert figures.ablation_values(both, "num_critics") == [5.0, 10.0]  # p=0.5 runs left out
+    assert figures.ablation_values(both, "confidence_level") == [0.25, 0.5]  # K=5 runs left out
+    assert figures.ablation_values(both, "num_critics", algo="td3bc") == [2.0]
 
 
 def test_runtime_table_is_time_per_million_steps(results):
@@ -327,10 +271,6 @@ def test_bad_input_gives_clear_errors(results):
     with pytest.raises(ValueError, match="final_score"):
         report.score_table(runs.drop(columns="final_score"))
     with pytest.raises(ValueError, match="unknown ablation parameter"):
-        report.plot_ablation(runs, evaluations, "alpha", "unused.png")
+        figures.plot_ablation(runs, evaluations, "alpha", "unused.png")
     with pytest.raises(ValueError, match="no runs of 'cql'"):
-        report.plot_ablation(runs, evaluations, "num_critics", "unused.png", algo="cql")
-    with pytest.raises(ValueError, match="at least one run"):
-        report.stratified_bootstrap_ci([np.ones(3), np.array([])], np.mean)
-    with pytest.raises(ValueError, match="finite"):
-        report.iqm([1.0, np.nan])
+        figures.plot_ablation(runs, evaluations, "num_critics", "unused.png", algo="cql")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from pathlib import Path
 
 import h5py
 import numpy as np
@@ -166,3 +167,20 @@ def test_cached_dataset_from_an_older_zoo_is_noticed(tiny_zoo, tmp_path):
     assert not generate.is_current(medium, "hopper-medium", root)
     assert generate.is_current(expert, "hopper-expert", root)
     assert not generate.is_current(tmp_path / "missing.hdf5", "hopper-expert", root)
+
+
+SHIPPED_ROOT = Path(zoo.__file__).parent.parent / "zoo"
+
+
+@pytest.mark.parametrize("env", ["hopper", "halfcheetah", "walker2d"])
+@pytest.mark.parametrize("which", ["medium", "expert"])
+def test_shipped_policy_scores_within_its_card_range(env, which):
+    """The package's medium and expert policies, rolled out afresh (another seed, 3 episodes of
+    sampled actions), score within their card's mean +- 2 std (with a floor for near-zero spread)."""
+    card = zoo.card(env, SHIPPED_ROOT)
+    entry = card[which]
+    actor = zoo.load_actor(zoo.policy_path(env, which, SHIPPED_ROOT))
+    env_id = zoo.tasks.ENVS[env].env_id
+    mean, _ = zoo.stochastic_return(env_id, actor, episodes=3, seed=card["evaluation_seed"] + 1)
+    tolerance = max(2 * entry["return_std"], 0.05 * abs(entry["return_mean"]), 20.0)
+    assert abs(mean - entry["return_mean"]) <= tolerance, (mean, entry)

@@ -1,0 +1,290 @@
+"""The paper's figures from experiment results (see :mod:`eabc.experiments.report` for the frames).
+
+Figure 1: :func:`plot_learning_curves`; Figures 2-4: :func:`plot_ablation`; Figure 5:
+:func:`plot_runtime`; and :func:`plot_performance_profiles` (score distributions with bootstrap CIs).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from eabc.data import tasks
+from eabc.experiments.report import (
+    ABLATION_PARAMETERS,
+    PAPER_DEFAULTS,
+    PESSIMISM_ORDER,
+    _labelled,
+    _labels,
+    _missing,
+    _require,
+    dataset_sort_key,
+    runtime_table,
+    task_scores,
+)
+from eabc.experiments.stats import _profile_batched, performance_profile, stratified_bootstrap_ci
+
+
+def _new_figure(panels: int, panel_size=(4.0, 3.0), bottom: float = 0.6, top: float = 0.6):
+    """A figure on the Agg canvas (no pyplot, so no global state), and its axes.
+
+    Margins are fixed in inches (``bottom``, ``top``) rather than found by ``tight_layout``, which
+    would draw every figure twice.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: PLC0415
+    from matplotlib.figure import Figure  # noqa: PLC0415
+
+    cols = min(panels, 3) or 1
+    rows = max(math.ceil(panels / cols), 1)
+    width, height = panel_size[0] * cols, panel_size[1] * rows + bottom + top
+    fig = Figure(figsize=(width, height))
+    FigureCanvasAgg(fig)
+    fig.subplots_adjust(
+        left=0.75 / width,
+        right=1 - 0.2 / width,
+        bottom=bottom / height,
+        top=1 - top / height,
+        wspace=0.35,
+        hspace=0.5,
+    )
+    axes = fig.subplots(rows, cols, squeeze=False).ravel()
+    for ax in axes[panels:]:
+        ax.set_visible(False)
+    return fig, axes
+
+
+def _colors(keys: Sequence[str]) -> dict[str, tuple]:
+    from matplotlib import colormaps  # noqa: PLC0415
+
+    cmap = colormaps["tab10" if len(keys) <= 10 else "tab20"]
+    return {key: cmap(i % cmap.N) for i, key in enumerate(keys)}
+
+
+def _save(fig, path: str | Path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    return path
+
+
+def _curve_stats(runs: pd.DataFrame, evaluations: pd.DataFrame, by: str) -> pd.DataFrame:
+    """Mean and std over seeds of the score at each step, per ``(dataset, by)``."""
+    _require(evaluations, ("run_id", "step", "score"), "evaluations")
+    merged = evaluations[["run_id", "step", "score"]].merge(
+        runs[["run_id", "dataset", by]], on="run_id"
+    )
+    merged = merged[np.isfinite(merged["score"].astype(float))]
+    per_run = merged.groupby(["dataset", by, "run_id", "step"], as_index=False)["score"].mean()
+    stats = per_run.groupby(["dataset", by, "step"])["score"].agg(["mean", "std", "count"])
+    return stats.reset_index().fillna({"std": 0.0})
+
+
+def _plot_curves(stats: pd.DataFrame, by: str, keys: list[str], path, title: str) -> Path:
+    from matplotlib.ticker import EngFormatter  # noqa: PLC0415
+
+    datasets = sorted(stats["dataset"].unique(), key=dataset_sort_key)
+    fig, axes = _new_figure(len(datasets), bottom=0.7 + 0.3 * math.ceil(len(keys) / 6))
+    colors, handles = _colors(keys), {}
+    for ax, dataset in zip(axes, datasets):
+        for key in keys:
+            curve = stats[(stats["dataset"] == dataset) & (stats[by] == key)]
+            if curve.empty:
+                continue
+            curve = curve.sort_values("step")
+            x, m, s = curve["step"].to_numpy(), curve["mean"].to_numpy(), curve["std"].to_numpy()
+            (handles[key],) = ax.plot(x, m, color=colors[key], label=key, lw=1.5)
+            ax.fill_between(x, m - s, m + s, color=colors[key], alpha=0.2, lw=0)
+        ax.set_title(dataset)
+        ax.set_xlabel("gradient steps")
+        ax.xaxis.set_major_formatter(EngFormatter(sep=""))  # 500k, 1M
+        ax.set_ylabel("normalised score")
+        ax.grid(alpha=0.3)
+    if not datasets:
+        axes[0].set_visible(True)
+        axes[0].text(0.5, 0.5, "no evaluations", ha="center", va="center")
+        axes[0].set_axis_off()
+    ordered = [k for k in keys if k in handles]
+    if ordered:
+        fig.legend(
+            [handles[k] for k in ordered], ordered, loc="lower center", ncol=min(6, len(ordered))
+        )
+    fig.suptitle(title)
+    return _save(fig, path)
+
+
+def plot_learning_curves(runs: pd.DataFrame, evaluations: pd.DataFrame, path: str | Path) -> Path:
+    """Figure 1: per dataset, the score of each algorithm label over gradient steps.
+
+    The line is the mean over seeds, the band +-1 std over seeds (ddof 1; none with one seed).
+    """
+    runs = _labelled(runs)
+    stats = _curve_stats(runs, evaluations, "label")
+    title = "Learning curves: mean ± 1 std over seeds"
+    return _plot_curves(stats, "label", _labels(runs), path, title)
+
+
+def _value_key(value):
+    """A hashable, comparable form of a setting (NaN/None -> None, floats rounded)."""
+    if _missing(value):
+        return None
+    return round(float(value), 9) if isinstance(value, int | float | np.number) else str(value)
+
+
+def _value_label(parameter: str, value) -> str:
+    if value is None:
+        return "none"
+    if parameter == "num_critics":
+        return f"K={value:g}"
+    if parameter == "confidence_level":
+        return f"p={value:g}"
+    return str(value)
+
+
+def _value_sort(parameter: str, value) -> tuple:
+    if parameter == "pessimism" and value in PESSIMISM_ORDER:
+        return (0, PESSIMISM_ORDER.index(value), "")
+    if isinstance(value, float):
+        return (0, value, "")
+    return (1, 0, str(value))
+
+
+def _reference(group: pd.DataFrame, other: str, dataset: str):
+    """The value an ablation holds ``other`` at: the default runs', else the paper's, else the mode."""
+    default = group[group["variant"] == ""]
+    values = [_value_key(v) for v in (default if len(default) else group)[other]]
+    paper = PAPER_DEFAULTS.get(other)
+    if other == "confidence_level":
+        paper = tasks.default_confidence_level(tasks.parse_task(dataset))
+    if not len(default) and _value_key(paper) in values:
+        return _value_key(paper)
+    return Counter(values).most_common(1)[0][0]
+
+
+def _ablation_runs(runs: pd.DataFrame, parameter: str, algo: str) -> pd.DataFrame:
+    """Runs of ``algo`` that differ from the reference setting in ``parameter`` only.
+
+    The other ablation settings are held at the dataset's default runs' values (variant ``""``),
+    else at the paper's defaults if such runs exist, else at their most common value. Identical
+    settings reached through different variants (``""`` and ``K=10``) are counted once per seed.
+    """
+    if parameter not in ABLATION_PARAMETERS:
+        raise ValueError(f"unknown ablation parameter {parameter!r}; use {ABLATION_PARAMETERS}")
+    _require(runs, ABLATION_PARAMETERS, "runs")
+    runs = _labelled(runs)
+    sub = runs[runs["algo"] == algo]
+    kept = []
+    for dataset, group in sub.groupby("dataset"):
+        mask = np.ones(len(group), dtype=bool)
+        for other in ABLATION_PARAMETERS:
+            if other != parameter:
+                ref = _reference(group, other, dataset)
+                mask &= np.array([_value_key(v) == ref for v in group[other]])
+        kept.append(group[mask])
+    if not kept:
+        return sub.assign(value=pd.Series(dtype=object))
+    out = pd.concat(kept)
+    out["value"] = [_value_key(v) for v in out[parameter]]
+    out = out.sort_values(["variant", "run_id"]).drop_duplicates(["dataset", "value", "seed"])
+    return out
+
+
+def ablation_values(runs: pd.DataFrame, parameter: str, algo: str = "eabc") -> list:
+    """The values of ``parameter`` that :func:`plot_ablation` would compare, in order."""
+    values = set(_ablation_runs(runs, parameter, algo)["value"])
+    return sorted(values, key=lambda v: _value_sort(parameter, v))
+
+
+def plot_ablation(
+    runs: pd.DataFrame,
+    evaluations: pd.DataFrame,
+    parameter: str,
+    path: str | Path,
+    algo: str = "eabc",
+) -> Path:
+    """Figures 2-4: per dataset, learning curves of ``algo`` for each value of ``parameter``.
+
+    ``parameter`` is ``num_critics``, ``confidence_level`` or ``pessimism``; the other two are held
+    fixed (see :func:`ablation_values`). Mean +- 1 std over seeds.
+    """
+    sub = _ablation_runs(runs, parameter, algo)
+    if sub.empty:
+        raise ValueError(f"no runs of {algo!r} to plot an ablation of {parameter!r}")
+    values = ablation_values(runs, parameter, algo)
+    sub = sub.assign(key=[_value_label(parameter, v) for v in sub["value"]])
+    stats = _curve_stats(sub, evaluations, "key")
+    keys = [_value_label(parameter, v) for v in values]
+    return _plot_curves(stats, "key", keys, path, f"Ablation of {parameter} ({algo})")
+
+
+def plot_runtime(runs: pd.DataFrame, path: str | Path) -> Path:
+    """Figure 5: bars of wall-clock time per 1M gradient steps per label, std over runs as errors.
+
+    The unit is hours, or minutes when every bar is under an hour.
+    """
+    table = runtime_table(runs)
+    minutes = len(table) > 0 and table["mean"].max() < 1.0
+    scale, unit = (60.0, "minutes") if minutes else (1.0, "hours")
+    fig, axes = _new_figure(1, (max(4.0, 0.9 * len(table) + 1.5), 3.0), bottom=0.9, top=0.4)
+    ax = axes[0]
+    labels = list(table.index)
+    means = table["mean"].to_numpy() * scale
+    errors = table["std"].fillna(0.0).to_numpy() * scale
+    colors = _colors(labels)
+    ax.bar(labels, means, yerr=errors, capsize=4, color=[colors[k] for k in labels])
+    top = max(means + errors, default=1.0)
+    for x, m, e in zip(range(len(labels)), means, errors):
+        ax.text(x, m + e + 0.02 * top, f"{m:.2g}", ha="center", va="bottom", fontsize="small")
+    ax.set_ylim(0, 1.15 * top)
+    ax.set_ylabel(f"wall-clock {unit} per 1M gradient steps")
+    ax.set_title("Runtime: mean ± std over runs")
+    for tick in ax.get_xticklabels():
+        tick.set(rotation=30, ha="right")
+    if not labels:
+        ax.text(0.5, 0.5, "no runs with a measured speed", ha="center", va="center")
+    return _save(fig, path)
+
+
+def plot_performance_profiles(
+    runs: pd.DataFrame,
+    path: str | Path,
+    metric: str = "final_score",
+    taus: Sequence[float] | None = None,
+    reps: int = 2000,
+    seed: int = 0,
+) -> Path:
+    """Score distributions: per label, the fraction of runs above each score, with a 95% CI band."""
+    scores = task_scores(runs, metric)
+    if taus is None:
+        pooled = np.concatenate([np.concatenate(s) for s in scores.values()] or [np.zeros(1)])
+        taus = np.linspace(min(0.0, pooled.min()), max(100.0, pooled.max()), 101)
+    taus = np.asarray(taus, dtype=float)
+    fig, axes = _new_figure(1, (5.5, 3.5), bottom=0.6, top=0.4)
+    ax, colors = axes[0], _colors(list(scores))
+    for label, task_list in scores.items():
+        profile = performance_profile(task_list, taus)
+        low, high = stratified_bootstrap_ci(
+            task_list, lambda draws: _profile_batched(draws, taus), reps, seed=seed, batched=True
+        )
+        ax.step(taus, profile, where="post", color=colors[label], label=label)
+        ax.fill_between(taus, low, high, step="post", color=colors[label], alpha=0.2, lw=0)
+    ax.set_xlabel("normalised score τ")
+    ax.set_ylabel("fraction of runs with score > τ")
+    ax.set_ylim(-0.02, 1.02)
+    ax.grid(alpha=0.3)
+    ax.set_title("Performance profiles (95% stratified-bootstrap CIs)")
+    if scores:
+        ax.legend(fontsize="small")
+    return _save(fig, path)
+
+
+def _ablation_algo(runs: pd.DataFrame, parameter: str) -> str | None:
+    """EABC if its runs vary ``parameter``, else the first algorithm whose runs do, else None."""
+    if any(column not in runs for column in ABLATION_PARAMETERS):
+        return None
+    algos = sorted(runs["algo"].unique(), key=lambda a: (a != "eabc", a))
+    return next((a for a in algos if len(ablation_values(runs, parameter, a)) > 1), None)
