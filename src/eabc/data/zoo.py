@@ -177,13 +177,18 @@ def build(
             else tasks.normalized_score(ret, info.ref_min_score, info.ref_max_score)
         )
 
+    measured: dict[int, dict] = {}
+
     def measure(step: int) -> dict:
+        if step in measured:  # a snapshot can be both an expert and a medium candidate
+            return measured[step]
         mean, std = stochastic_return(env_id, actors[step], episodes, seed)
         entry = {"step": step, "return_mean": mean, "return_std": std, "episodes": episodes}
         entry["normalized_return"] = score(mean)
         log(
             f"{env} snapshot {step}: return {mean:.0f} +- {std:.0f} (normalised {entry['normalized_return']})"
         )
+        measured[step] = entry
         return entry
 
     expert = max(
@@ -200,8 +205,7 @@ def build(
     # The first snapshots where training episodes reach 85% of the medium return are candidates.
     reached = [s for s in snapshots if train.get(s, -np.inf) >= 0.85 * target]
     candidates = [s for s in snapshots if reached and reached[0] <= s][:3] or snapshots[-1:]
-    measured = [measure(s) for s in candidates]
-    medium = min(measured, key=lambda e: abs(e["return_mean"] - target))
+    medium = min((measure(s) for s in candidates), key=lambda e: abs(e["return_mean"] - target))
 
     out = zoo_dir(root) / env
     if out.exists():
