@@ -184,3 +184,23 @@ def test_shipped_policy_scores_within_its_card_range(env, which):
     mean, _ = zoo.stochastic_return(env_id, actor, episodes=3, seed=card["evaluation_seed"] + 1)
     tolerance = max(2 * entry["return_std"], 0.05 * abs(entry["return_mean"]), 20.0)
     assert abs(mean - entry["return_mean"]) <= tolerance, (mean, entry)
+
+
+def test_rebuilding_the_zoo_keeps_its_medium_policy(tiny_zoo, tmp_path):
+    """A rebuild after more training moves the expert only: the shipped medium policy, its replay
+    snapshots and so the medium datasets' fingerprints stay as they were."""
+    root, card = tiny_zoo
+    run_dir = root.parent / "run"
+    zoo_copy = tmp_path / "zoo"
+    shutil.copytree(root, zoo_copy)
+    before = {k: zoo.fingerprint("hopper", k, zoo_copy) for k in ("medium", "medium-replay")}
+    # Searching again with another target would pick another snapshot ...
+    other = [s for s in card["replay"]["snapshots"] if s != card["medium"]["step"]][-1]
+    searched = zoo.build(run_dir, "hopper", tmp_path / "searched", episodes=1, medium_step=other)
+    assert searched["medium"]["step"] == other
+    # ... but the command line keeps the medium policy of the zoo it rebuilds.
+    zoo.main(["build", str(run_dir), "hopper", "--root", str(zoo_copy), "--episodes", "1"])
+    rebuilt = zoo.card("hopper", zoo_copy)
+    assert rebuilt["medium"]["step"] == card["medium"]["step"]
+    assert rebuilt["replay"] == card["replay"]
+    assert {k: zoo.fingerprint("hopper", k, zoo_copy) for k in before} == before

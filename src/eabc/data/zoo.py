@@ -153,9 +153,15 @@ def build(
     seed: int = 12345,
     expert_candidates: int = 5,
     medium_return: float | None = None,
+    medium_step: int | None = None,
     log: Callable[[str], None] = print,
 ) -> dict:
-    """Make ``zoo/ENV`` from the ``eabc sac`` run in ``run_dir`` (see the module docstring)."""
+    """Make ``zoo/ENV`` from the ``eabc sac`` run in ``run_dir`` (see the module docstring).
+
+    ``medium_step`` fixes the medium policy instead of searching for it: a rebuild after the run
+    has trained on keeps the medium policy (and so the medium and medium-replay datasets) that
+    was already shipped, and only the expert moves.
+    """
     from eabc.training.checkpoint import read_config  # noqa: PLC0415
     from eabc.training.online import SNAPSHOTS  # noqa: PLC0415
 
@@ -205,6 +211,10 @@ def build(
     # The first snapshots where training episodes reach 85% of the medium return are candidates.
     reached = [s for s in snapshots if train.get(s, -np.inf) >= 0.85 * target]
     candidates = [s for s in snapshots if reached and reached[0] <= s][:3] or snapshots[-1:]
+    if medium_step is not None:
+        if medium_step not in actors:
+            raise DatasetError(f"{run_dir} has no snapshot at step {medium_step}")
+        candidates = [medium_step]
     medium = min((measure(s) for s in candidates), key=lambda e: abs(e["return_mean"] - target))
 
     out = zoo_dir(root) / env
@@ -285,6 +295,8 @@ def main(argv: list[str] | None = None) -> None:
     b.add_argument("--episodes", type=int, default=10)
     b.add_argument("--medium-return", type=float, default=None,
                    help="return the medium policy aims at (default: D4RL's medium level)")  # fmt: skip
+    b.add_argument("--rechoose-medium", action="store_true",
+                   help="search for the medium policy again even if the zoo already has one")  # fmt: skip
     p = sub.add_parser(
         "pack", help="copy a SAC run's checkpoint, log and float16 snapshots (no replay buffer)"
     )
@@ -294,8 +306,18 @@ def main(argv: list[str] | None = None) -> None:
     if args.command == "pack":
         print(pack(args.run_dir, args.dest))
         return
+    medium_step = None
+    shipped = zoo_dir(args.root) / args.env / CARD
+    if shipped.exists() and not args.rechoose_medium:
+        medium_step = json.loads(shipped.read_text())["medium"]["step"]
+        print(f"keeping the zoo's medium policy (step {medium_step}); --rechoose-medium to search")
     card_ = build(
-        args.run_dir, args.env, args.root, args.episodes, medium_return=args.medium_return
+        args.run_dir,
+        args.env,
+        args.root,
+        args.episodes,
+        medium_return=args.medium_return,
+        medium_step=medium_step,
     )
     print(json.dumps({k: card_[k] for k in ("expert", "medium")}, indent=2))
 
