@@ -103,9 +103,10 @@ def fingerprint(env: str, kind: str, root=None) -> str | None:
 
     if kind == "random":
         return None
+    info = card(env, root)  # a missing zoo stops here, with the message that says what to do
     digest = hashlib.sha256()
     if kind == "medium-replay":
-        digest.update(json.dumps(card(env, root)["replay"], sort_keys=True).encode())
+        digest.update(json.dumps(info["replay"], sort_keys=True).encode())
         names = [p for _, _, p in replay_schedule(env, root) if p is not None]
     else:
         names = ["medium", "expert"] if kind == "medium-expert" else [kind]
