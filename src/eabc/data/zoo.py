@@ -308,9 +308,8 @@ def main(argv: list[str] | None = None) -> None:
         print(pack(args.run_dir, args.dest))
         return
     medium_step = None
-    shipped = zoo_dir(args.root) / args.env / CARD
-    if shipped.exists() and not args.rechoose_medium:
-        medium_step = json.loads(shipped.read_text())["medium"]["step"]
+    if (zoo_dir(args.root) / args.env / CARD).exists() and not args.rechoose_medium:
+        medium_step = card(args.env, args.root)["medium"]["step"]
         print(f"keeping the zoo's medium policy (step {medium_step}); --rechoose-medium to search")
     card_ = build(
         args.run_dir,
