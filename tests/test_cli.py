@@ -129,3 +129,13 @@ def test_sac_command_trains_and_resumes(tmp_path, capsys):
     ]  # fmt: skip
     main(["sac", "--resume", str(run_dir), "--no-progress"])  # already finished: nothing to do
     assert json.loads(capsys.readouterr().out)["steps"] == 400
+
+
+def test_train_help_names_every_algorithm(capsys):
+    from eabc.agents import ALGORITHMS
+
+    with pytest.raises(SystemExit):
+        main(["train", "--help"])
+    help_text = " ".join(capsys.readouterr().out.split())
+    missing = [name for name in ALGORITHMS if name not in help_text]
+    assert not missing, f"eabc train --help does not mention {missing}"
