@@ -12,6 +12,7 @@ import time
 
 import jax
 import numpy as np
+import pandas as pd
 import pytest
 import yaml
 
@@ -135,6 +136,9 @@ def test_local_sweep_is_interrupted_resumed_and_stored(tmp_path, two_datasets):
         summary = json.loads((root / "runs" / run.run_id / "summary.json").read_text())
         assert row["final_score"] == pytest.approx(summary["final_score"], abs=1e-9)
         assert row["variant"] == run.variant
+        diverged = summary.get("q_out_of_range_step")
+        stored = row["q_out_of_range_step"]
+        assert pd.isna(stored) if diverged is None else stored == diverged
     again, _ = results.load(root)
     assert len(again) == 8
     (root / results.DATABASE).unlink()

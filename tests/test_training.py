@@ -124,3 +124,33 @@ def test_learning_lifts_the_score_well_above_the_untrained_policy(tmp_path, pend
     last = run.state["evaluations"]["3000"]["score"]
     assert untrained < 30
     assert last > untrained + 40, (untrained, last, summary)
+
+
+def test_value_range_is_what_the_rewards_allow():
+    low, high = trainer.value_range(np.array([-1.0, 0.5, 2.0]), discount=0.9)
+    np.testing.assert_allclose((low, high), (-10 - 3, 20 + 3), rtol=1e-6)
+    assert trainer.value_range(np.ones(3), discount=None) is None
+    rows = [{"step": 100, "q_mean": 5.0}, {"step": 200, "q_mean": 30.0}, {"step": 300}]
+    assert trainer.first_divergence(rows, (low, high)) == 200
+    assert trainer.first_divergence(rows[:1], (low, high)) is None
+
+
+def test_diverging_critics_are_reported(tmp_path, pendulum_dataset, capsys):
+    import dataclasses
+    import json
+
+    healthy = start(tmp_path, "healthy", pendulum_dataset, steps=200)
+    trainer.train(healthy, progress=False)
+    summary = json.loads((tmp_path / "healthy" / "summary.json").read_text())
+    assert summary["q_out_of_range_step"] is None
+    assert summary["q_range"][0] < -1000 < 0 < summary["q_range"][1]
+    assert "diverging" not in capsys.readouterr().err
+
+    # All-zero rewards allow only Q = 0, so the critics' nonzero initial values are out of range.
+    silent = dataclasses.replace(pendulum_dataset, rewards=np.zeros_like(pendulum_dataset.rewards))
+    run = start(tmp_path, "zero", silent, steps=200)
+    trainer.train(run, progress=False)
+    summary = json.loads((tmp_path / "zero" / "summary.json").read_text())
+    assert summary["q_out_of_range_step"] == 100
+    err = capsys.readouterr().err
+    assert err.count("the critics are diverging") == 1, "warn once, at the first step out of range"

@@ -174,6 +174,7 @@ class Results:
     """KEY=VALUE filters, e.g. dataset=hopper-* algo=eabc status=done."""
     columns: tuple[str, ...] = (
         "run_id", "status", "steps", "final_score", "steps_per_s", "wall_time_s",
+        "q_out_of_range_step",
     )  # fmt: skip
     """Columns to show."""
     csv: bool = False

@@ -5,7 +5,9 @@
 - ``runs``: one row per run directory: ``run_id, run_dir, dataset, env, kind, algo, seed,
   variant`` and the algorithm settings (``num_critics, confidence_level, pessimism``), then
   ``status`` (done/partial), ``steps``, ``steps_target``, ``wall_time_s``, ``steps_per_s``,
-  ``final_score`` and ``final_return`` (means over the last 10 evaluations) and ``config`` (JSON);
+  ``final_score`` and ``final_return`` (means over the last 10 evaluations),
+  ``q_out_of_range_step`` (the first step where the critics' mean Q left the range the rewards
+  allow, a sign of divergence; empty if never or not finished) and ``config`` (JSON);
 - ``evaluations``: ``run_id, step, score, score_std, return_mean, return_std``.
 
 The run directories are the source of truth (``config.json``, ``log.csv``, ``summary.json``); the
@@ -91,6 +93,7 @@ def read_run(run_dir: Path, root: Path | None = None) -> tuple[dict, list[dict]]
         "steps_per_s": steps / wall if wall and wall > 0 else math.nan,
         "final_score": _mean([e["score"] for e in last]),
         "final_return": _mean([e["return_mean"] for e in last]),
+        "q_out_of_range_step": (summary or {}).get("q_out_of_range_step"),
         "config": json.dumps(config),
     }
     return row, [{"run_id": run_id, **e} for e in evaluations]
@@ -131,7 +134,7 @@ def collect(root: str | Path, write: bool = True) -> tuple[pd.DataFrame, pd.Data
 _RUN_COLUMNS = [
     "run_id", "run_dir", "dataset", "env", "kind", "algo", "seed", "variant", *SETTINGS,
     "status", "steps", "steps_target", "wall_time_s", "steps_per_s", "final_score",
-    "final_return", "config",
+    "final_return", "q_out_of_range_step", "config",
 ]  # fmt: skip
 _EVAL_COLUMNS = ["run_id", "step", "score", "score_std", "return_mean", "return_std"]
 

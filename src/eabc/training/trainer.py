@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -294,6 +296,7 @@ def train_seeds(runs: list[Run], progress: bool = True) -> list[dict[str, Any]]:
     if preprocess is not None:  # e.g. IQL's reward scaling; the run keeps the data as loaded
         dataset = preprocess(dataset)
     data = device_data(dataset, first.normalizer)
+    q_range = value_range(dataset.rewards, getattr(first.agent_config, "discount", None))
     update = functools.partial(
         first.algorithm.module.update, config=first.agent_config, max_action=first.max_action
     )
@@ -341,6 +344,9 @@ def train_seeds(runs: list[Run], progress: bool = True) -> list[dict[str, Any]]:
                 _after_chunk(run, *output, length, seconds, logger)
                 for run, output, logger in zip(runs, outputs, loggers)
             ]
+            for run, row, logger in zip(runs, rows, loggers):
+                if q_range is not None and first_divergence(logger.rows, q_range) == run.step:
+                    tqdm.write(divergence_warning(run, row["q_mean"], q_range), file=sys.stderr)
             bar.update(length)
             bar.set_postfix(_postfix(rows[0], first.state["evaluations"]), refresh=False)
     finally:
@@ -348,10 +354,48 @@ def train_seeds(runs: list[Run], progress: bool = True) -> list[dict[str, Any]]:
         for logger in loggers:
             logger.close()
     summaries = []
-    for run in runs:
+    for run, logger in zip(runs, loggers):
         summaries.append(summarize_run(run))
+        if q_range is not None:
+            summaries[-1]["q_range"] = list(q_range)
+            summaries[-1]["q_out_of_range_step"] = first_divergence(logger.rows, q_range)
         checkpoint.save_json(run.run_dir / SUMMARY, summaries[-1])
     return summaries
+
+
+def value_range(rewards: np.ndarray, discount: float | None) -> tuple[float, float] | None:
+    """The Q values a critic can honestly reach on these rewards, with a 10% margin.
+
+    No policy collects more than ``max r / (1 - gamma)`` or less than ``min r / (1 - gamma)`` in
+    discounted return, so a mean Q outside this range (widened by 10% of its width, room for
+    entropy bonuses) is extrapolation error running away, not learning. None without a discount.
+    """
+    if discount is None or not 0.0 <= discount < 1.0:
+        return None
+    low, high = float(np.min(rewards)) / (1 - discount), float(np.max(rewards)) / (1 - discount)
+    margin = 0.1 * (high - low)
+    return low - margin, high + margin
+
+
+def first_divergence(rows: list[dict[str, float]], q_range: tuple[float, float]) -> int | None:
+    """The first logged step whose mean Q lies outside ``q_range`` (None if none does)."""
+    low, high = q_range
+    for row in rows:
+        q = row.get("q_mean", math.nan)
+        if not math.isnan(q) and not low <= q <= high:
+            return int(row["step"])
+    return None
+
+
+def divergence_warning(run: Run, q_mean: float, q_range: tuple[float, float]) -> str:
+    return (
+        f"warning: {run.run_dir.name} at step {run.step}: mean Q {q_mean:,.0f} lies outside "
+        f"[{q_range[0]:,.0f}, {q_range[1]:,.0f}], the discounted returns this data's rewards allow: "
+        "the critics are diverging (extrapolation error on out-of-data actions), and scores from "
+        "here on rest on a broken critic. For EABC, more behaviour cloning (a higher "
+        "--confidence-level) or a more pessimistic value (--pessimism min) stops it. Training goes on; "
+        "summary.json records the step as q_out_of_range_step."
+    )
 
 
 def _check_same_setting(runs: list[Run]) -> None:
