@@ -84,6 +84,7 @@ def test_actor_loss_matches_hand_computation(batch, p):
     expected = -lam * value.mean() + (w * ((pi - a) ** 2).mean(-1)).mean()
     np.testing.assert_allclose(loss, expected, rtol=1e-4)
     np.testing.assert_allclose(metrics["bc_fraction"], w.mean())
+    np.testing.assert_allclose(metrics["policy_q_std"], q.std(0, ddof=1).mean(), rtol=1e-4)
     if p == 1.0:  # exactly TD3+BC's mean-squared error
         np.testing.assert_allclose(metrics["bc_loss"], ((pi - a) ** 2).mean(), rtol=1e-5)
 

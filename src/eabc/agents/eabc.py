@@ -169,6 +169,8 @@ def actor_loss(actor, critic, batch: Batch, key, config, max_action, keep=None):
     return loss, {
         "actor_loss": loss,
         "actor_value": value.mean(),
+        # The ensemble's spread at the policy's own actions: the penalty mean - std actually pays.
+        "policy_q_std": q.std(axis=0, ddof=1).mean(),
         "lambda": lam,
         "bc_loss": bc,
         "bc_fraction": keep.mean(),
