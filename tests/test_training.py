@@ -130,6 +130,8 @@ def test_value_range_is_what_the_rewards_allow():
     low, high = trainer.value_range(np.array([-1.0, 0.5, 2.0]), discount=0.9)
     np.testing.assert_allclose((low, high), (-10 - 3, 20 + 3), rtol=1e-6)
     assert trainer.value_range(np.ones(3), discount=None) is None
+    # Positive rewards: critics starting near 0 are not out of range.
+    np.testing.assert_allclose(trainer.value_range(np.array([1.0, 3.0]), 0.9), (-3, 33), rtol=1e-6)
     rows = [{"step": 100, "q_mean": 5.0}, {"step": 200, "q_mean": 30.0}, {"step": 300}]
     assert trainer.first_divergence(rows, (low, high)) == 200
     assert trainer.first_divergence(rows[:1], (low, high)) is None

@@ -366,13 +366,15 @@ def train_seeds(runs: list[Run], progress: bool = True) -> list[dict[str, Any]]:
 def value_range(rewards: np.ndarray, discount: float | None) -> tuple[float, float] | None:
     """The Q values a critic can honestly reach on these rewards, with a 10% margin.
 
-    No policy collects more than ``max r / (1 - gamma)`` or less than ``min r / (1 - gamma)`` in
-    discounted return, so a mean Q outside this range (widened by 10% of its width, room for
+    No policy collects more than ``max(0, max r) / (1 - gamma)`` or less than
+    ``min(0, min r) / (1 - gamma)`` in discounted return (0 is inside: an episode can end, and
+    critics start near 0), so a mean Q outside this range (widened by 10% of its width, room for
     entropy bonuses) is extrapolation error running away, not learning. None without a discount.
     """
     if discount is None or not 0.0 <= discount < 1.0:
         return None
-    low, high = float(np.min(rewards)) / (1 - discount), float(np.max(rewards)) / (1 - discount)
+    low = min(0.0, float(np.min(rewards))) / (1 - discount)
+    high = max(0.0, float(np.max(rewards))) / (1 - discount)
     margin = 0.1 * (high - low)
     return low - margin, high + margin
 
