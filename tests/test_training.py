@@ -156,3 +156,8 @@ def test_diverging_critics_are_reported(tmp_path, pendulum_dataset, capsys):
     assert summary["q_out_of_range_step"] == 100
     err = capsys.readouterr().err
     assert err.count("the critics are diverging") == 1, "warn once, at the first step out of range"
+    # The results store reads the same step from the log (also for unfinished runs).
+    from eabc.experiments import results
+
+    assert results.read_run(tmp_path / "zero")[0]["q_out_of_range_step"] == 100
+    assert np.isnan(results.read_run(tmp_path / "healthy")[0]["q_out_of_range_step"])

@@ -6,8 +6,9 @@
   variant`` and the algorithm settings (``num_critics, confidence_level, pessimism``), then
   ``status`` (done/partial), ``steps``, ``steps_target``, ``wall_time_s``, ``steps_per_s``,
   ``final_score`` and ``final_return`` (means over the last 10 evaluations),
-  ``q_out_of_range_step`` (the first step where the critics' mean Q left the range the rewards
-  allow, a sign of divergence; empty if never or not finished) and ``config`` (JSON);
+  ``q_out_of_range_step`` (the first logged step where the critics' mean Q left the range the
+  rewards allow, a sign of divergence; empty if it never did or the log predates the check) and
+  ``config`` (JSON);
 - ``evaluations``: ``run_id, step, score, score_std, return_mean, return_std``.
 
 The run directories are the source of truth (``config.json``, ``log.csv``, ``summary.json``); the
@@ -54,12 +55,14 @@ def read_run(run_dir: Path, root: Path | None = None) -> tuple[dict, list[dict]]
     train, agent = config["train"], config.get("agent", {})
     dataset = config.get("dataset", {}).get("name") or train["dataset"]
     task = tasks.parse_task(dataset)
-    evaluations, last_row = [], {}
+    evaluations, last_row, out_of_range = [], {}, math.nan
     log = run_dir / LOG
     if log.exists():
         with open(log, newline="") as f:
             for row in csv.DictReader(f):
                 last_row = row
+                if _num(row.get("q_out_of_range")) == 1.0 and math.isnan(out_of_range):
+                    out_of_range = int(float(row["step"]))
                 if row.get("return_mean") not in (None, ""):
                     evaluations.append(
                         {
@@ -93,7 +96,7 @@ def read_run(run_dir: Path, root: Path | None = None) -> tuple[dict, list[dict]]
         "steps_per_s": steps / wall if wall and wall > 0 else math.nan,
         "final_score": _mean([e["score"] for e in last]),
         "final_return": _mean([e["return_mean"] for e in last]),
-        "q_out_of_range_step": (summary or {}).get("q_out_of_range_step"),
+        "q_out_of_range_step": out_of_range,
         "config": json.dumps(config),
     }
     return row, [{"run_id": run_id, **e} for e in evaluations]

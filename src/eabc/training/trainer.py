@@ -341,7 +341,7 @@ def train_seeds(runs: list[Run], progress: bool = True) -> list[dict[str, Any]]:
             jax.block_until_ready(outputs)
             seconds = time.perf_counter() - started
             rows = [
-                _after_chunk(run, *output, length, seconds, logger)
+                _after_chunk(run, *output, length, seconds, logger, q_range)
                 for run, output, logger in zip(runs, outputs, loggers)
             ]
             for run, row, logger in zip(runs, rows, loggers):
@@ -415,13 +415,17 @@ def _check_same_setting(runs: list[Run]) -> None:
             )
 
 
-def _after_chunk(run: Run, agent, key, metrics, length: int, seconds: float, logger) -> dict:
+def _after_chunk(
+    run: Run, agent, key, metrics, length: int, seconds: float, logger, q_range=None
+) -> dict:
     """Log, evaluate and checkpoint one run after a chunk of ``length`` steps."""
     config = run.config
     run.state = {**run.state, "agent": agent, "key": key}
     run.state["elapsed"] += seconds
     row = {"step": run.step, "wall_time": run.state["elapsed"], "steps_per_s": length / seconds}
     row |= summarize_metrics(jax.device_get(metrics))
+    if q_range is not None and "q_mean" in row:
+        row["q_out_of_range"] = float(not q_range[0] <= row["q_mean"] <= q_range[1])
     if run.step % config.eval_interval == 0 or run.step == config.steps:
         result = evaluate(run)
         run.state["evaluations"][str(run.step)] = result
