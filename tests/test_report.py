@@ -274,3 +274,14 @@ def test_bad_input_gives_clear_errors(results):
         figures.plot_ablation(runs, evaluations, "alpha", "unused.png")
     with pytest.raises(ValueError, match="no runs of 'cql'"):
         figures.plot_ablation(runs, evaluations, "num_critics", "unused.png", algo="cql")
+
+
+def test_report_lists_runs_whose_critics_diverged(results, tmp_path):
+    runs, evaluations = results
+    runs = runs.assign(q_out_of_range_step=np.nan)
+    runs.loc[3, "q_out_of_range_step"] = 12000
+    text = report.write_report(runs, evaluations, tmp_path)["report.md"].read_text()
+    assert f"`{runs.loc[3, 'run_id']}` (step 12,000)" in text
+    assert f"(1 of {len(runs)};" in text
+    clean = report.write_report(runs.assign(q_out_of_range_step=np.nan), evaluations, tmp_path)
+    assert "left the value range" not in clean["report.md"].read_text()

@@ -298,6 +298,14 @@ def aggregate_to_markdown(table: pd.DataFrame, alpha: float = 0.05) -> str:
 # The report
 
 
+def _diverged_runs(runs: pd.DataFrame) -> list[str]:
+    """``run (step N)`` for each run with a ``q_out_of_range_step``."""
+    if "q_out_of_range_step" not in runs:
+        return []
+    hit = runs[pd.to_numeric(runs["q_out_of_range_step"], errors="coerce").notna()]
+    return [f"`{r}` (step {int(s):,})" for r, s in zip(hit["run_id"], hit["q_out_of_range_step"])]
+
+
 def write_report(
     runs: pd.DataFrame, evaluations: pd.DataFrame, out_dir: str | Path
 ) -> dict[str, Path]:
@@ -345,6 +353,12 @@ def write_report(
         steps = partial["steps"] if "steps" in partial else pd.Series("?", index=partial.index)
         listed = ", ".join(f"`{r}` ({s} steps)" for r, s in zip(partial["run_id"], steps))
         sections.append(f"Partial runs, scored on their evaluations so far: {listed}.\n")
+    diverged = _diverged_runs(runs)
+    if diverged:
+        sections.append(
+            f"Runs whose critics left the value range the rewards allow ({len(diverged)} of "
+            f"{len(runs)}; their later scores rest on a diverging critic): {', '.join(diverged)}.\n"
+        )
     sections += [
         "## Scores (Table 1)\n",
         "D4RL-normalised score of each run (mean of its last 10 evaluations): mean ± std over "
