@@ -381,12 +381,15 @@ def value_range(rewards: np.ndarray, discount: float | None) -> tuple[float, flo
 
 def first_divergence(rows: list[dict[str, float]], q_range: tuple[float, float]) -> int | None:
     """The first logged step whose mean Q lies outside ``q_range`` (None if none does)."""
-    low, high = q_range
     for row in rows:
         q = row.get("q_mean", math.nan)
-        if not math.isnan(q) and not low <= q <= high:
+        if not math.isnan(q) and not in_range(q, q_range):
             return int(row["step"])
     return None
+
+
+def in_range(q: float, q_range: tuple[float, float]) -> bool:
+    return q_range[0] <= q <= q_range[1]
 
 
 def divergence_warning(run: Run, q_mean: float, q_range: tuple[float, float]) -> str:
@@ -395,8 +398,8 @@ def divergence_warning(run: Run, q_mean: float, q_range: tuple[float, float]) ->
         f"[{q_range[0]:,.0f}, {q_range[1]:,.0f}], the discounted returns this data's rewards allow: "
         "the critics are diverging (extrapolation error on out-of-data actions), and scores from "
         "here on rest on a broken critic. For EABC, more behaviour cloning (a higher "
-        "--confidence-level) or a more pessimistic value (--pessimism min) stops it. Training goes on; "
-        "summary.json records the step as q_out_of_range_step."
+        "--confidence-level) is what stopped it on our hopper-medium; --pessimism min only slowed "
+        "it. Training goes on; summary.json records the step as q_out_of_range_step."
     )
 
 
@@ -425,7 +428,7 @@ def _after_chunk(
     row = {"step": run.step, "wall_time": run.state["elapsed"], "steps_per_s": length / seconds}
     row |= summarize_metrics(jax.device_get(metrics))
     if q_range is not None and "q_mean" in row:
-        row["q_out_of_range"] = float(not q_range[0] <= row["q_mean"] <= q_range[1])
+        row["q_out_of_range"] = float(not in_range(row["q_mean"], q_range))
     if run.step % config.eval_interval == 0 or run.step == config.steps:
         result = evaluate(run)
         run.state["evaluations"][str(run.step)] = result
