@@ -176,15 +176,21 @@ SHIPPED_ROOT = Path(zoo.__file__).parent.parent / "zoo"
 @pytest.mark.parametrize("env", ["hopper", "halfcheetah"])
 @pytest.mark.parametrize("which", ["medium", "expert"])
 def test_shipped_policy_scores_within_its_card_range(env, which):
-    """The package's medium and expert policies, rolled out afresh (another seed, 3 episodes of
-    sampled actions), score within their card's mean +- 2 std (with a floor for near-zero spread)."""
+    """The package's medium and expert policies, rolled out afresh (other seeds, 3 episodes of
+    sampled actions), score within their card's mean +- 2 std (with a floor for near-zero spread).
+
+    The median of the 3 episodes is compared: a good hopper falls in about one episode of ten or
+    twenty, which the card's 10 episodes may not have shown; a wrong or corrupted policy file
+    (medium and expert differ by over 1,000) still fails.
+    """
     card = zoo.card(env, SHIPPED_ROOT)
     entry = card[which]
     actor = zoo.load_actor(zoo.policy_path(env, which, SHIPPED_ROOT))
     env_id = zoo.tasks.ENVS[env].env_id
-    mean, _ = zoo.stochastic_return(env_id, actor, episodes=3, seed=card["evaluation_seed"] + 1)
+    seed = card["evaluation_seed"] + 1
+    returns = [zoo.stochastic_return(env_id, actor, 1, seed + i)[0] for i in range(3)]
     tolerance = max(2 * entry["return_std"], 0.05 * abs(entry["return_mean"]), 20.0)
-    assert abs(mean - entry["return_mean"]) <= tolerance, (mean, entry)
+    assert abs(np.median(returns) - entry["return_mean"]) <= tolerance, (returns, entry)
 
 
 def test_rebuilding_the_zoo_keeps_its_medium_policy(tiny_zoo, tmp_path):
