@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import dataclasses
+import json
+
 import jax
 import numpy as np
 import pytest
 
 from eabc import load_policy
+from eabc.experiments import results
 from eabc.training import checkpoint, trainer
 from eabc.training.trainer import TrainConfig
 
@@ -138,9 +142,6 @@ def test_value_range_is_what_the_rewards_allow():
 
 
 def test_diverging_critics_are_reported(tmp_path, pendulum_dataset, capsys):
-    import dataclasses
-    import json
-
     healthy = start(tmp_path, "healthy", pendulum_dataset, steps=200)
     trainer.train(healthy, progress=False)
     summary = json.loads((tmp_path / "healthy" / "summary.json").read_text())
@@ -157,7 +158,5 @@ def test_diverging_critics_are_reported(tmp_path, pendulum_dataset, capsys):
     err = capsys.readouterr().err
     assert err.count("the critics are diverging") == 1, "warn once, at the first step out of range"
     # The results store reads the same step from the log (also for unfinished runs).
-    from eabc.experiments import results
-
     assert results.read_run(tmp_path / "zero")[0]["q_out_of_range_step"] == 100
     assert np.isnan(results.read_run(tmp_path / "healthy")[0]["q_out_of_range_step"])

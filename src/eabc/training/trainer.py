@@ -345,7 +345,8 @@ def train_seeds(runs: list[Run], progress: bool = True) -> list[dict[str, Any]]:
                 for run, output, logger in zip(runs, outputs, loggers)
             ]
             for run, row, logger in zip(runs, rows, loggers):
-                if q_range is not None and first_divergence(logger.rows, q_range) == run.step:
+                # Warn at the first flagged row only; the log is scanned only when a row is flagged.
+                if row.get("q_out_of_range") and first_divergence(logger.rows, q_range) == run.step:
                     tqdm.write(divergence_warning(run, row["q_mean"], q_range), file=sys.stderr)
             bar.update(length)
             bar.set_postfix(_postfix(rows[0], first.state["evaluations"]), refresh=False)
