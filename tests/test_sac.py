@@ -12,7 +12,7 @@ import pytest
 from handcalc import ACT, OBS, B, member, np_mlp, np_q
 from learning import MARGIN, late_gain
 
-from eabc import networks
+from eabc import cli, networks
 from eabc.agents import sac
 from eabc.training import checkpoint, online
 
@@ -103,6 +103,36 @@ def test_actor_and_temperature_updates_match_hand_computation(batch):
         float(new_state.log_alpha), np.sign(gap) * config.alpha_lr, rtol=1e-3
     )
     assert int(new_state.step) == 1
+
+
+def test_fixed_temperature_stays_while_the_networks_learn(batch):
+    config = tiny(init_alpha=0.2, autotune=False)
+    state = sac.init(jax.random.PRNGKey(0), OBS, ACT, config)
+    new_state, metrics = sac.update(state, batch, jax.random.PRNGKey(1), config, 1.0)
+    assert float(new_state.log_alpha) == float(np.log(np.float32(0.2)))
+    np.testing.assert_allclose(metrics["alpha"], 0.2, rtol=1e-6)
+    assert not np.allclose(new_state.actor["w0"], state.actor["w0"])
+    assert not np.allclose(new_state.critic["w0"], state.critic["w0"])
+    # The same update with tuning on moves the temperature.
+    tuned = dataclasses.replace(config, autotune=True)
+    moved, _ = sac.update(state, batch, jax.random.PRNGKey(1), tuned, 1.0)
+    assert float(moved.log_alpha) != float(state.log_alpha)
+
+
+def test_sac_command_uses_the_environment_preset_and_overrides():
+    walker = cli.sac_agent_config(cli.Sac(config=online.SACTrainConfig(env="walker2d")))
+    assert walker == sac.ONLINE_PRESETS["walker2d"]
+    assert (walker.autotune, walker.init_alpha, walker.critic_lr) == (False, 0.2, 1e-3)
+    hopper = cli.sac_agent_config(cli.Sac(config=online.SACTrainConfig(env="hopper")))
+    assert hopper == sac.PRESETS["sac"] and hopper.autotune
+    fixed = cli.sac_agent_config(
+        cli.Sac(config=online.SACTrainConfig(env="hopper"), alpha=0.1, lr=5e-4)
+    )
+    assert (fixed.autotune, fixed.init_alpha, fixed.actor_lr, fixed.critic_lr) == (
+        False, 0.1, 5e-4, 5e-4,
+    )  # fmt: skip
+    with pytest.raises(ValueError, match="--alpha must be positive"):
+        cli.sac_agent_config(cli.Sac(config=online.SACTrainConfig(env="hopper"), alpha=0.0))
 
 
 def test_actor_is_mean_action_when_deterministic():

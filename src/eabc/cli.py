@@ -104,8 +104,27 @@ class Sac:
     """Where the run goes (default runs/sac_ENV_seedS)."""
     resume: str | None = None
     """Continue the run in this directory from its last checkpoint (other options are ignored)."""
+    alpha: float | None = None
+    """Fixed entropy temperature instead of automatic tuning (default: tuning toward -dim(A);
+    walker2d: fixed 0.2, see README)."""
+    lr: float | None = None
+    """Adam learning rate of actor and critics (default 3e-4; walker2d 1e-3)."""
     progress: bool = True
     """Show a progress bar."""
+
+
+def sac_agent_config(cmd: Sac):
+    """The environment's online SAC preset with the command's overrides."""
+    from eabc.agents import sac  # noqa: PLC0415
+
+    agent = sac.ONLINE_PRESETS.get(cmd.config.env, sac.PRESETS["sac"])
+    if cmd.alpha is not None:
+        if cmd.alpha <= 0:
+            raise ValueError(f"--alpha must be positive, got {cmd.alpha}")
+        agent = dataclasses.replace(agent, init_alpha=cmd.alpha, autotune=False)
+    if cmd.lr is not None:
+        agent = dataclasses.replace(agent, actor_lr=cmd.lr, critic_lr=cmd.lr)
+    return agent
 
 
 def run_sac(cmd: Sac) -> dict:
@@ -115,7 +134,8 @@ def run_sac(cmd: Sac) -> dict:
         run = online.resume_sac(cmd.resume)
     else:
         config = cmd.config
-        run = online.start_sac(config, cmd.run_dir or f"runs/sac_{config.env}_seed{config.seed}")
+        run_dir = cmd.run_dir or f"runs/sac_{config.env}_seed{config.seed}"
+        run = online.start_sac(config, run_dir, sac_agent_config(cmd))
     print(f"run directory: {run.run_dir}", file=sys.stderr)
     summary = online.train_sac(run, progress=cmd.progress)
     print(json.dumps(summary, indent=2))
