@@ -172,8 +172,7 @@ def test_cached_dataset_from_an_older_zoo_is_noticed(tiny_zoo, tmp_path):
 SHIPPED_ROOT = Path(zoo.__file__).parent.parent / "zoo"
 
 
-# walker2d joins when its SAC run reaches the medium level and its policies ship (issue #3).
-@pytest.mark.parametrize("env", ["hopper", "halfcheetah"])
+@pytest.mark.parametrize("env", ["hopper", "halfcheetah", "walker2d"])
 @pytest.mark.parametrize("which", ["medium", "expert"])
 def test_shipped_policy_scores_within_its_card_range(env, which):
     """The package's medium and expert policies, rolled out afresh (other seeds, 3 episodes of
