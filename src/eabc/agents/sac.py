@@ -78,7 +78,7 @@ ONLINE_PRESETS: dict[str, SACConfig] = {
     # Spinning Up's SAC: fixed temperature 0.2, Adam 1e-3. With automatic tuning toward -dim(A) the
     # temperature fell to 0.04 within 20K steps and four walker2d runs (2 seeds, interleaved
     # updates, critic lr 1e-3) stayed near 500 return for 90K-250K steps; this setting passed
-    # 2,700 by 150K (README, "Behaviour-policy zoo").
+    # 2,700 by 150K (README, "Behaviour policies: online SAC and the zoo").
     "walker2d": SACConfig(init_alpha=0.2, autotune=False, actor_lr=1e-3, critic_lr=1e-3),
 }
 """Online SAC settings per environment, where they differ from :data:`PRESETS` ``["sac"]``."""
