@@ -65,7 +65,7 @@ def dot_flops(instructions: dict, name: str) -> float:
 def dot_form(instructions: dict, name: str) -> str:
     """``NN`` for ``x @ w``, ``NT`` for ``x @ w.T``, ``TN`` for ``x.T @ y`` (contracted axes)."""
     _, _, operands, attrs = instructions[name]
-    lhs_rank, rhs_rank = (len(instructions[o][0]) for o in operands[:2])
+    lhs_rank = len(instructions[operands[0]][0])
     lhs = re.search(r"lhs_contracting_dims=\{(\d+)", attrs)
     rhs = re.search(r"rhs_contracting_dims=\{(\d+)", attrs)
     batch = (
