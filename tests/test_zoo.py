@@ -10,6 +10,7 @@ import h5py
 import numpy as np
 import pytest
 
+from eabc import cli
 from eabc.data import generate, zoo
 from eabc.data.loaders import load_file
 from eabc.training import online
@@ -150,7 +151,7 @@ def test_packed_run_resumes_without_its_replay_buffer(tiny_zoo, tmp_path):
     assert not np.array_equal(before, np.asarray(run.state["agent"].actor["w0"]))
 
 
-def test_cached_dataset_from_an_older_zoo_is_noticed(tiny_zoo, tmp_path):
+def test_cached_dataset_from_an_older_zoo_is_noticed(tiny_zoo, tmp_path, monkeypatch):
     root = tmp_path / "zoo"
     shutil.copytree(tiny_zoo[0], root)
     medium = generate.make(
@@ -167,6 +168,17 @@ def test_cached_dataset_from_an_older_zoo_is_noticed(tiny_zoo, tmp_path):
     assert not generate.is_current(medium, "hopper-medium", root)
     assert generate.is_current(expert, "hopper-expert", root)
     assert not generate.is_current(tmp_path / "missing.hdf5", "hopper-expert", root)
+    # `eabc data make` remakes the stale file and keeps the current one.
+    cache = tmp_path / "cache"
+    (cache / "datasets").mkdir(parents=True)
+    shutil.copy(medium, generate.dataset_path("hopper-medium", cache))
+    shutil.copy(expert, generate.dataset_path("hopper-expert", cache))
+    expert_bytes = generate.dataset_path("hopper-expert", cache).read_bytes()
+    monkeypatch.setenv("EABC_ZOO_DIR", str(root))
+    for name in ("hopper-medium", "hopper-expert"):
+        cli.main(["data", "make", name, "--size", "300", "--cache-dir", str(cache)])
+    assert generate.is_current(generate.dataset_path("hopper-medium", cache), "hopper-medium")
+    assert generate.dataset_path("hopper-expert", cache).read_bytes() == expert_bytes
 
 
 SHIPPED_ROOT = Path(zoo.__file__).parent.parent / "zoo"

@@ -369,8 +369,10 @@ def run_data(cmd: DataMake | DataInfo | DataList | DataExport) -> None:
     if isinstance(cmd, DataMake):
         path = generate.dataset_path(cmd.name, cmd.cache_dir)
         if path.exists() and not cmd.force:
-            print(f"{path} (cached; --force to remake)")
-            return
+            if generate.is_current(path, cmd.name):
+                print(f"{path} (cached; --force to remake)")
+                return
+            print(f"{path} was made from older zoo policies; making it again", file=sys.stderr)
         print(generate.make(cmd.name, path, seed=cmd.seed, size=cmd.size))
     elif isinstance(cmd, DataList):
         header = f"{'dataset':26s} {'transitions':>11s} {'episodes':>8s} {'return':>17s} {'score':>6s} {'D4RL':>5s}  file"
