@@ -134,20 +134,16 @@ def main() -> None:
     )
     parser.add_argument("--dump-hlo", metavar="FILE", help="write the compiled program's HLO text")
     args = parser.parse_args()
-    if args.single_thread:
-        os.environ["XLA_FLAGS"] = (
-            os.environ.get("XLA_FLAGS", "")
-            + " --xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
-        )
-        os.environ["OMP_NUM_THREADS"] = "1"
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    from speed import SHAPES, fake_data, matmul_peak, single_thread_env, step_flops
+
+    if args.single_thread:  # before JAX starts
+        os.environ.update(single_thread_env(0))
 
     import jax
 
     from eabc.agents import eabc
     from eabc.training.trainer import train_chunk
-
-    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-    from speed import SHAPES, fake_data, matmul_peak, step_flops
 
     obs_dim, act_dim = SHAPES[args.env]
     data = fake_data(obs_dim, act_dim)

@@ -117,7 +117,7 @@ def sac_agent_config(cmd: Sac):
     """The environment's online SAC preset with the command's overrides."""
     from eabc.agents import sac  # noqa: PLC0415
 
-    agent = sac.ONLINE_PRESETS.get(cmd.config.env, sac.PRESETS["sac"])
+    agent = sac.online_preset(cmd.config.env)
     if cmd.alpha is not None:
         if cmd.alpha <= 0:
             raise ValueError(f"--alpha must be positive, got {cmd.alpha}")

@@ -84,6 +84,11 @@ ONLINE_PRESETS: dict[str, SACConfig] = {
 """Online SAC settings per environment, where they differ from :data:`PRESETS` ``["sac"]``."""
 
 
+def online_preset(env: str) -> SACConfig:
+    """The online SAC settings ``eabc sac`` uses for ``env``."""
+    return ONLINE_PRESETS.get(env, PRESETS["sac"])
+
+
 @flax.struct.dataclass
 class SACState:
     actor: networks.Params

@@ -158,7 +158,7 @@ def start_sac(
         raise FileExistsError(
             f"{run_dir} already holds a run; continue it with `eabc sac --resume {run_dir}`"
         )
-    agent_config = agent_config or sac.ONLINE_PRESETS.get(config.env, sac.PRESETS["sac"])
+    agent_config = agent_config or sac.online_preset(config.env)
     run = _build(run_dir, config, agent_config, from_checkpoint=False)
     run_dir.mkdir(parents=True, exist_ok=True)
     checkpoint.save_json(
