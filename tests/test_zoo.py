@@ -10,7 +10,7 @@ import h5py
 import numpy as np
 import pytest
 
-from eabc import cli
+from eabc import cli, networks
 from eabc.data import generate, zoo
 from eabc.data.loaders import load_file
 from eabc.training import online
@@ -137,17 +137,33 @@ def test_packed_run_resumes_without_its_replay_buffer(tiny_zoo, tmp_path):
         original = zoo._rounded(zoo.load_actor(run_dir / online.SNAPSHOTS / name))
         for k, v in zoo.load_actor(packed / online.SNAPSHOTS / name).items():
             np.testing.assert_array_equal(v, original[k])
-    # Continue the packed run past its end: it resumes from the checkpoint's networks and, once
-    # the refilled buffer holds update_after transitions, trains them on.
+    # Continue the packed run past its end: it resumes from the checkpoint's networks, refills
+    # the buffer with its current policy (no gradient or training steps), and trains on.
     config = json.loads((packed / "config.json").read_text())
-    config["sac"]["steps"] = 4500
+    config["sac"] |= {"steps": 4500, "refill_steps": 2000}
     (packed / "config.json").write_text(json.dumps(config))
     run = online.resume_sac(packed)
     assert run.state["step"] == 3000 and run.buffer.size == 0
-    before = np.asarray(run.state["agent"].actor["w0"]).copy()
+    episodes = len(run.state["episodes"])
+    actor, rng_state = (
+        {k: np.array(v) for k, v in run.state["agent"].actor.items()},
+        run.state["rng"],
+    )
+    before = actor["w0"]
     np.testing.assert_array_equal(before, online.resume_sac(run_dir).state["agent"].actor["w0"])
     summary = online.train_sac(run, progress=False)
     assert summary["steps"] == 4500
+    assert run.buffer.size == 2000 + 1500
+    # The refill's actions are the resumed policy's samples, drawn with the checkpoint's random
+    # state: replaying the sampler on the stored observations reproduces them.
+    rng = np.random.default_rng()
+    rng.bit_generator.state = json.loads(rng_state)
+    sampler = networks.numpy_gaussian_sampler(actor, run.max_action)
+    data = run.buffer.data
+    for i in range(20):
+        np.testing.assert_allclose(data["actions"][i], sampler(data["observations"][i], rng))
+    # The refill's episodes are not training episodes: only 1,500 more steps' worth were logged.
+    assert sum(e[2] for e in run.state["episodes"][episodes:]) <= 1500
     assert not np.array_equal(before, np.asarray(run.state["agent"].actor["w0"]))
 
 

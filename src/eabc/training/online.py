@@ -67,6 +67,10 @@ class SACTrainConfig:
     """Keep the actor every this many steps (the checkpoint sequence for medium-replay data)."""
     checkpoint_interval: int = 50_000
     """Save networks, optimisers and the replay buffer every this many steps."""
+    refill_steps: int = 100_000
+    """A run resumed without its replay buffer (a pack) first collects this many transitions with
+    its current policy, without gradient steps and without counting them as training steps:
+    gradient steps on the first ``update_after`` new transitions alone undo a trained policy."""
 
     def __post_init__(self):
         for name in ("eval_interval", "snapshot_interval", "checkpoint_interval"):
@@ -214,12 +218,14 @@ def train_sac(run: OnlineRun, progress: bool = True) -> dict[str, Any]:
     rng = np.random.default_rng()
     rng.bit_generator.state = json.loads(run.state["rng"])
     step = int(run.state["step"])
-    # A resumed run restarts its episode; the seed makes that restart deterministic too.
-    obs, _ = env.reset(seed=config.seed + step)
     low, high = env.action_space.low, env.action_space.high
     sampler = networks.numpy_gaussian_sampler(
         jax.device_get(run.state["agent"].actor), run.max_action
     )
+    if step > 0 and run.buffer.size == 0:
+        refill_buffer(run, sampler, rng, min(config.refill_steps, step), progress)
+    # A resumed run restarts its episode; the seed makes that restart deterministic too.
+    obs, _ = env.reset(seed=config.seed + step)
     evaluator = Evaluator(config.env_id, config.seed + 100, config.eval_episodes)
     env_name = next((k for k, v in tasks.ENVS.items() if v.env_id == config.env_id), None)
     logger = RunLogger(run_dir, resume_step=step)
@@ -281,6 +287,26 @@ def train_sac(run: OnlineRun, progress: bool = True) -> dict[str, Any]:
         bar.close()
         logger.close()
     return summarize_sac(run)
+
+
+def refill_buffer(run: OnlineRun, sampler, rng: np.random.Generator, n: int, progress: bool):
+    """Fill an empty replay buffer with ``n`` transitions of the current stochastic policy.
+
+    Used when a run resumes without ``replay.npz``: the step count, the episode history and the
+    networks stay as they were; only the buffer (and the exploration random state) changes.
+    """
+    env = run.env
+    obs, _ = env.reset(seed=run.config.seed + int(run.state["step"]) + 1)
+    for _ in tqdm(
+        range(n), desc="refilling the replay buffer", unit="step", disable=not progress,
+        dynamic_ncols=True, mininterval=1.0,
+    ):  # fmt: skip
+        action = sampler(obs, rng)
+        next_obs, reward, terminated, truncated, _ = env.step(action)
+        run.buffer.add(obs, action, reward, next_obs, float(terminated))
+        obs = next_obs
+        if terminated or truncated:
+            obs, _ = env.reset()
 
 
 def _log_row(run, step, metrics, evaluator, env_name) -> dict[str, float]:
