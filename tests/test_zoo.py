@@ -238,3 +238,21 @@ def test_rebuilding_the_zoo_keeps_its_medium_policy(tiny_zoo, tmp_path):
     assert rebuilt["medium"]["step"] == card["medium"]["step"]
     assert rebuilt["replay"] == card["replay"]
     assert {k: zoo.fingerprint("hopper", k, zoo_copy) for k in before} == before
+
+
+def test_expert_is_the_best_of_the_last_snapshots_asked_for(tiny_zoo, tmp_path, capsys):
+    root, card = tiny_zoo
+    run_dir = root.parent / "run"
+    zoo_copy = tmp_path / "zoo"
+    shutil.copytree(root, zoo_copy)
+    steps = sorted(int(p.stem.split("_")[1]) for p in (run_dir / "snapshots").glob("actor_*.npz"))
+    args = ["build", str(run_dir), "hopper", "--root", str(zoo_copy), "--episodes", "1"]
+    zoo.main([*args, "--expert-candidates", str(len(steps))])
+    measured = {
+        int(line.split()[2].rstrip(":")): float(line.split()[4])
+        for line in capsys.readouterr().out.splitlines()
+        if line.startswith("hopper snapshot ")
+    }
+    assert set(steps) <= set(measured)  # every snapshot was a candidate, the first one included
+    expert = zoo.card("hopper", zoo_copy)["expert"]
+    assert round(expert["return_mean"]) == round(max(measured[s] for s in steps))

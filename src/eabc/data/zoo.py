@@ -294,6 +294,8 @@ def main(argv: list[str] | None = None) -> None:
     b.add_argument("env", help="hopper, halfcheetah or walker2d")
     b.add_argument("--root", default=None, help="zoo directory (default: the package's)")
     b.add_argument("--episodes", type=int, default=10)
+    b.add_argument("--expert-candidates", type=int, default=5,
+                   help="the expert is the best of this many last snapshots")  # fmt: skip
     b.add_argument("--medium-return", type=float, default=None,
                    help="return the medium policy aims at (default: D4RL's medium level)")  # fmt: skip
     b.add_argument("--rechoose-medium", action="store_true",
@@ -316,6 +318,7 @@ def main(argv: list[str] | None = None) -> None:
         args.env,
         args.root,
         args.episodes,
+        expert_candidates=args.expert_candidates,
         medium_return=args.medium_return,
         medium_step=medium_step,
     )
