@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import json
+import os
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import h5py
@@ -155,13 +158,14 @@ def test_packed_run_resumes_without_its_replay_buffer(tiny_zoo, tmp_path):
     assert summary["steps"] == 4500
     assert run.buffer.size == 2000 + 1500
     # The refill's actions are the resumed policy's samples, drawn with the checkpoint's random
-    # state: replaying the sampler on the stored observations reproduces them.
+    # state: replaying the sampler on the stored (float32-rounded) observations reproduces them.
     rng = np.random.default_rng()
     rng.bit_generator.state = json.loads(rng_state)
     sampler = networks.numpy_gaussian_sampler(actor, run.max_action)
     data = run.buffer.data
     for i in range(20):
-        np.testing.assert_allclose(data["actions"][i], sampler(data["observations"][i], rng))
+        expected = sampler(data["observations"][i], rng)
+        np.testing.assert_allclose(data["actions"][i], expected, atol=1e-5)
     # The refill's episodes are not training episodes: only 1,500 more steps' worth were logged.
     assert sum(e[2] for e in run.state["episodes"][episodes:]) <= 1500
     assert not np.array_equal(before, np.asarray(run.state["agent"].actor["w0"]))
@@ -184,6 +188,12 @@ def test_cached_dataset_from_an_older_zoo_is_noticed(tiny_zoo, tmp_path, monkeyp
     assert not generate.is_current(medium, "hopper-medium", root)
     assert generate.is_current(expert, "hopper-expert", root)
     assert not generate.is_current(tmp_path / "missing.hdf5", "hopper-expert", root)
+    # So does a dataset made by an older version of the rollout code from the same policy.
+    older = shutil.copy(expert, tmp_path / "older.hdf5")
+    with h5py.File(older, "r+") as f:
+        metadata = json.loads(f.attrs["metadata"])
+        f.attrs["metadata"] = json.dumps({**metadata, "version": generate.FORMAT_VERSION - 1})
+    assert not generate.is_current(older, "hopper-expert", root)
     # `eabc data make` remakes the stale file and keeps the current one.
     cache = tmp_path / "cache"
     (cache / "datasets").mkdir(parents=True)
@@ -256,3 +266,30 @@ def test_expert_is_the_best_of_the_last_snapshots_asked_for(tiny_zoo, tmp_path, 
     assert set(steps) <= set(measured)  # every snapshot was a candidate, the first one included
     expert = zoo.card("hopper", zoo_copy)["expert"]
     assert round(expert["return_mean"]) == round(max(measured[s] for s in steps))
+
+
+ROLLOUT = """
+import hashlib, sys
+import h5py
+from eabc.data import generate
+generate.make("hopper-medium", sys.argv[1], seed=0, size=int(sys.argv[2]))
+with h5py.File(sys.argv[1]) as f:
+    print(hashlib.sha256(f["observations"][:].tobytes() + f["actions"][:].tobytes()).hexdigest())
+"""
+
+
+def test_policy_datasets_do_not_depend_on_the_blas_kernel(tmp_path):
+    """OpenBLAS picks its kernels by CPU, and kernels sum in different orders; a dataset made on
+    one machine must still be the dataset made on another. OPENBLAS_CORETYPE forces an old SSE3
+    kernel here, as an older CPU would."""
+    digests = []
+    for i, coretype in enumerate([None, "Prescott"]):
+        env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_CORETYPE"}
+        if coretype:
+            env["OPENBLAS_CORETYPE"] = coretype
+        out = subprocess.run(
+            [sys.executable, "-c", ROLLOUT, str(tmp_path / f"{i}.hdf5"), "20000"],
+            env=env, capture_output=True, text=True, check=True,
+        )  # fmt: skip
+        digests.append(out.stdout.split()[-1])
+    assert digests[0] == digests[1]

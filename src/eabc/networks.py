@@ -111,14 +111,20 @@ def sample_tanh_gaussian(
 
 
 def numpy_mlp(params: dict[str, np.ndarray]):
-    """A NumPy copy of an MLP for fast single-observation inference (evaluation, rollouts)."""
+    """A NumPy copy of an MLP for fast single-observation inference (evaluation, rollouts).
+
+    It computes in float64 from float32 weights, so that its float32-rounded results do not depend
+    on the order in which the CPU's BLAS kernel sums (OpenBLAS picks kernels by CPU; in float32 a
+    1,000-step rollout, and so a generated dataset, differed between two of them).
+    """
     weights = [
-        (np.asarray(params[f"w{i}"], np.float32), np.asarray(params[f"b{i}"], np.float32))
+        (np.asarray(params[f"w{i}"], np.float32).astype(np.float64),
+         np.asarray(params[f"b{i}"], np.float32).astype(np.float64))
         for i in range(len(params) // 2)
-    ]
+    ]  # fmt: skip
 
     def apply(obs: np.ndarray) -> np.ndarray:
-        x = np.asarray(obs, np.float32)
+        x = np.asarray(obs, np.float64)
         for i, (w, b) in enumerate(weights):
             x = x @ w + b
             if i < len(weights) - 1:

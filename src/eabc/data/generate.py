@@ -20,7 +20,9 @@ from eabc.data import tasks
 from eabc.data.dataset import Dataset, DatasetError, concatenate
 from eabc.data.loaders import load_file
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+"""2: policies roll out in float64 (``networks.numpy_mlp``), so that a dataset no longer depends on
+the CPU's BLAS kernel; policy datasets of version 1 are made again on next use."""
 DATASET_SIZE = 1_000_000
 """D4RL's size of the random, medium and expert datasets."""
 
@@ -55,7 +57,8 @@ def load_or_make(name: str, cache_dir: str | os.PathLike | None = None, seed: in
 
 
 def is_current(path: str | os.PathLike, name: str, zoo_root=None) -> bool:
-    """Whether ``path`` exists and was made from the zoo's present policies (see zoo.fingerprint)."""
+    """Whether ``path`` exists and was made from the zoo's present policies (see zoo.fingerprint)
+    by this version of the rollout code (random datasets: always, they use no policy)."""
     from eabc.data import zoo  # noqa: PLC0415
 
     path = Path(path)
@@ -65,9 +68,11 @@ def is_current(path: str | os.PathLike, name: str, zoo_root=None) -> bool:
     if kind == "random":
         return True
     with h5py.File(path, "r") as f:
-        made_from = json.loads(f.attrs.get("metadata", "{}")).get("zoo")
+        metadata = json.loads(f.attrs.get("metadata", "{}"))
+    if metadata.get("version") != FORMAT_VERSION:
+        return False
     try:
-        return made_from == zoo.fingerprint(env_name, kind, zoo_root)
+        return metadata.get("zoo") == zoo.fingerprint(env_name, kind, zoo_root)
     except (DatasetError, FileNotFoundError):
         return True  # no zoo here to compare with: the cached file is all there is
 
