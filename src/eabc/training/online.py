@@ -290,13 +290,18 @@ def train_sac(run: OnlineRun, progress: bool = True) -> dict[str, Any]:
 
 
 def refill_buffer(run: OnlineRun, sampler, rng: np.random.Generator, n: int, progress: bool):
-    """Fill an empty replay buffer with ``n`` transitions of the current stochastic policy.
+    """Fill an empty replay buffer with ``n`` transitions of the current stochastic policy
+    (uniform random actions if the run is still in its ``start_steps`` warm-up).
 
     Used when a run resumes without ``replay.npz``: the step count, the episode history and the
     networks stay as they were; only the buffer (and the exploration random state) changes.
     """
     env = run.env
-    obs, _ = env.reset(seed=run.config.seed + int(run.state["step"]) + 1)
+    step = int(run.state["step"])
+    if step < run.config.start_steps:
+        low, high = env.action_space.low, env.action_space.high
+        sampler = lambda _obs, rng: rng.uniform(low, high).astype(np.float32)  # noqa: E731
+    obs, _ = env.reset(seed=run.config.seed + step + 1)
     for _ in tqdm(
         range(n), desc="refilling the replay buffer", unit="step", disable=not progress,
         dynamic_ncols=True, mininterval=1.0,
