@@ -171,7 +171,6 @@ def test_packed_run_resumes_without_its_replay_buffer(tiny_zoo, tmp_path):
     assert not np.array_equal(before, np.asarray(run.state["agent"].actor["w0"]))
 
 
-
 def test_refill_during_the_warm_up_uses_uniform_actions(tiny_zoo, tmp_path):
     """A run packed before ``start_steps`` refills with what it would have collected: noise."""
     packed = zoo.pack(tiny_zoo[0].parent / "run", tmp_path / "packed")
@@ -185,6 +184,7 @@ def test_refill_during_the_warm_up_uses_uniform_actions(tiny_zoo, tmp_path):
     expected = [rng.uniform(low, high).astype(np.float32) for _ in range(50)]
     np.testing.assert_array_equal(run.buffer.data["actions"][:50], expected)
     assert run.buffer.size == 50 and run.state["step"] == 3000
+
 
 def test_cached_dataset_from_an_older_zoo_is_noticed(tiny_zoo, tmp_path, monkeypatch):
     root = tmp_path / "zoo"
