@@ -303,7 +303,7 @@ def test_policy_datasets_do_not_depend_on_the_blas_kernel(tmp_path):
         if coretype:
             env["OPENBLAS_CORETYPE"] = coretype
         out = subprocess.run(
-            [sys.executable, "-c", ROLLOUT, str(tmp_path / f"{i}.hdf5"), "20000"],
+            [sys.executable, "-c", ROLLOUT, str(tmp_path / f"{i}.hdf5"), "5000"],
             env=env, capture_output=True, text=True, check=True,
         )  # fmt: skip
         digests.append(out.stdout.split()[-1])
