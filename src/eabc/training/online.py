@@ -238,10 +238,7 @@ def train_sac(run: OnlineRun, progress: bool = True) -> dict[str, Any]:
     metrics: dict[str, float] = {}
     try:
         while step < config.steps:
-            if step < config.start_steps:
-                action = rng.uniform(low, high).astype(np.float32)
-            else:
-                action = sampler(obs, rng)
+            action = _explore(config, step, obs, sampler, rng, low, high)
             next_obs, reward, terminated, truncated, _ = env.step(action)
             run.buffer.add(obs, action, reward, next_obs, float(terminated))
             episode_return += float(reward)
@@ -296,22 +293,26 @@ def refill_buffer(run: OnlineRun, sampler, rng: np.random.Generator, n: int, pro
     Used when a run resumes without ``replay.npz``: the step count, the episode history and the
     networks stay as they were; only the buffer (and the exploration random state) changes.
     """
-    env = run.env
-    step = int(run.state["step"])
-    if step < run.config.start_steps:
-        low, high = env.action_space.low, env.action_space.high
-        sampler = lambda _obs, rng: rng.uniform(low, high).astype(np.float32)  # noqa: E731
+    env, step = run.env, int(run.state["step"])
+    low, high = env.action_space.low, env.action_space.high
     obs, _ = env.reset(seed=run.config.seed + step + 1)
     for _ in tqdm(
         range(n), desc="refilling the replay buffer", unit="step", disable=not progress,
         dynamic_ncols=True, mininterval=1.0,
     ):  # fmt: skip
-        action = sampler(obs, rng)
+        action = _explore(run.config, step, obs, sampler, rng, low, high)
         next_obs, reward, terminated, truncated, _ = env.step(action)
         run.buffer.add(obs, action, reward, next_obs, float(terminated))
         obs = next_obs
         if terminated or truncated:
             obs, _ = env.reset()
+
+
+def _explore(config: SACTrainConfig, step: int, obs, sampler, rng, low, high) -> np.ndarray:
+    """The acting action at ``step``: uniform during the ``start_steps`` warm-up, then sampled."""
+    if step < config.start_steps:
+        return rng.uniform(low, high).astype(np.float32)
+    return sampler(obs, rng)
 
 
 def _log_row(run, step, metrics, evaluator, env_name) -> dict[str, float]:
