@@ -3,15 +3,32 @@
 from __future__ import annotations
 
 import dataclasses
+import os
+import shutil
+import tempfile
 
 import numpy as np
 import pytest
 from handcalc import make_batch
 
+from eabc import compile_cache
 from eabc.data.generate import rollout
 
 PENDULUM_RANDOM_RETURN = -1200.0
 PENDULUM_CONTROLLER_RETURN = -130.0
+
+
+def pytest_configure(config):
+    """One fresh compilation cache for the session, shared with the tests' subprocesses (CLI runs,
+    sweep workers): each program compiles once, as in a user's sweep (8.5 -> 7 min on 2 cores)."""
+    config.xla_cache = tempfile.mkdtemp(prefix="eabc-test-xla-")
+    os.environ["EABC_COMPILE_CACHE"] = config.xla_cache
+    os.environ.pop("JAX_COMPILATION_CACHE_DIR", None)
+    compile_cache.enable(config.xla_cache)
+
+
+def pytest_unconfigure(config):
+    shutil.rmtree(getattr(config, "xla_cache", ""), ignore_errors=True)
 
 
 def swing_up(obs: np.ndarray, rng: np.random.Generator, noise: float = 0.5) -> np.ndarray:

@@ -10,6 +10,7 @@ from typing import Annotated, Literal
 
 import tyro
 
+from eabc import compile_cache
 from eabc.training.online import SACTrainConfig
 from eabc.training.trainer import TrainConfig
 
@@ -420,6 +421,8 @@ def main(argv: list[str] | None = None) -> None:
         cmd = tyro.extras.subcommand_cli_from_dict(commands, args=argv, description=description)
     except ValueError as error:  # invalid settings caught in a dataclass __post_init__
         sys.exit(f"error: {error}")
+    options = getattr(cmd, "config", cmd)
+    compile_cache.enable(cache_root=getattr(options, "cache_dir", None))
     try:
         if isinstance(cmd, Train):
             run_train(cmd)

@@ -30,6 +30,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from eabc import compile_cache
 from eabc.agents import get_algorithm
 from eabc.data import generate
 from eabc.training.trainer import SUMMARY, TrainConfig
@@ -301,6 +302,7 @@ def execute(job: list[dict], root: str) -> list[dict]:
     root_path = Path(root)
     specs = [RunSpec.from_json(j) for j in job]
     first = specs[0].train_config()
+    compile_cache.enable(cache_root=first.cache_dir)  # a sweep's runs share their shapes
     dataset = load_dataset(first.dataset, first.cache_dir)  # one copy for the whole seed group
     runs = []
     for spec in specs:

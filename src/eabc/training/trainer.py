@@ -197,7 +197,9 @@ def _build(run_dir, config, agent_config, dataset, state) -> Run:
     normalizer = Normalizer.fit(dataset.observations)
     init_key, loop_key = jax.random.split(jax.random.PRNGKey(config.seed))
     fresh = {
-        "agent": algorithm.module.init(init_key, dataset.obs_dim, dataset.act_dim, agent_config),
+        "agent": _init_agent(
+            algorithm.module.init, init_key, dataset.obs_dim, dataset.act_dim, agent_config
+        ),
         "key": loop_key,
         "evaluations": {},
         "elapsed": 0.0,
@@ -210,6 +212,10 @@ def _build(run_dir, config, agent_config, dataset, state) -> Run:
     return Run(
         run_dir, config, algorithm, agent_config, dataset, normalizer, evaluator, max_action, fresh
     )
+
+
+# One compiled program rather than dozens of eagerly compiled operations (and cacheable on disk).
+_init_agent = jax.jit(lambda init, *args: init(*args), static_argnums=(0, 2, 3, 4))
 
 
 def device_data(dataset: Dataset, normalizer: Normalizer) -> Batch:
