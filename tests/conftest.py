@@ -23,7 +23,6 @@ def pytest_configure(config):
     sweep workers): each program compiles once, as in a user's sweep (8.5 -> 7 min on 2 cores)."""
     config.xla_cache = tempfile.mkdtemp(prefix="eabc-test-xla-")
     os.environ["EABC_COMPILE_CACHE"] = config.xla_cache
-    os.environ.pop("JAX_COMPILATION_CACHE_DIR", None)
     compile_cache.enable(config.xla_cache)
 
 

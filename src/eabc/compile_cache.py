@@ -1,13 +1,13 @@
 """XLA's compiled programs kept on disk, so that a new process does not compile them again.
 
 Every ``eabc`` command (and every sweep worker) turns this on. A run's programs (agent
-initialisation, the training chunk, the metrics) take 5-10 s to compile on a 2-core CPU; with the
-cache a second run of the same shapes starts that much sooner, and a sweep compiles each shape once.
+initialisation, the training chunk) take 5-10 s to compile on a 2-core CPU; with the cache a second
+run of the same shapes starts that much sooner, and a sweep compiles each shape once.
 
-Where: ``$EABC_COMPILE_CACHE`` if set (``off`` disables it), else ``xla/`` in the eabc cache
-directory (``$EABC_CACHE_DIR`` or ``~/.cache/eabc``). A directory already chosen through JAX's own
-``JAX_COMPILATION_CACHE_DIR`` is kept. Entries are keyed by the program, the JAX version and the
-compile options; XLA refuses an entry compiled for other CPU features and compiles afresh, so
+Where: ``$EABC_COMPILE_CACHE`` if set (``off`` disables it); otherwise a directory chosen through
+JAX's own ``JAX_COMPILATION_CACHE_DIR`` if any, else ``xla/`` in the eabc cache directory
+(``$EABC_CACHE_DIR`` or ``~/.cache/eabc``). Entries are keyed by the program, the JAX version and
+the compile options; XLA refuses an entry compiled for other CPU features and compiles afresh, so
 one directory can be shared by machines. Deleting the directory is always safe.
 """
 
@@ -32,9 +32,8 @@ def enable(
     setting = str(path) if path is not None else os.environ.get("EABC_COMPILE_CACHE", "")
     if setting.strip().lower() in OFF:
         return None
-    chosen = jax.config.jax_compilation_cache_dir
-    if path is None and chosen:
-        return Path(chosen)
+    if not setting and jax.config.jax_compilation_cache_dir:  # the user's own JAX setting
+        return Path(jax.config.jax_compilation_cache_dir)
     if not setting:
         from eabc.data.generate import cache_dir  # noqa: PLC0415
 
