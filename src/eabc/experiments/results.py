@@ -20,7 +20,9 @@ from __future__ import annotations
 import csv
 import json
 import math
+import os
 import sqlite3
+import tempfile
 from pathlib import Path
 
 import pandas as pd
@@ -63,7 +65,9 @@ def read_run(run_dir: Path, root: Path | None = None) -> tuple[dict, list[dict]]
                 last_row = row
                 if _num(row.get("q_out_of_range")) == 1.0 and math.isnan(out_of_range):
                     out_of_range = int(float(row["step"]))
-                if row.get("return_mean") not in (None, ""):
+                # An evaluation row has a return; "nan" cells (which resumes of older versions
+                # wrote into empty cells) are no evaluation.
+                if not math.isnan(_num(row.get("return_mean"))):
                     evaluations.append(
                         {
                             "step": int(float(row["step"])),
@@ -124,13 +128,16 @@ def collect(root: str | Path, write: bool = True) -> tuple[pd.DataFrame, pd.Data
     runs = pd.DataFrame(rows, columns=_RUN_COLUMNS)
     evals = pd.DataFrame(evaluations, columns=_EVAL_COLUMNS)
     if write and root.is_dir():
-        tmp = root / (DATABASE + ".tmp")
-        tmp.unlink(missing_ok=True)
-        with sqlite3.connect(tmp) as db:
-            runs.to_sql("runs", db, index=False)
-            evals.to_sql("evaluations", db, index=False)
-        db.close()
-        tmp.replace(root / DATABASE)
+        fd, tmp = tempfile.mkstemp(dir=root, prefix=f".{DATABASE}.", suffix=".tmp")
+        os.close(fd)
+        try:
+            with sqlite3.connect(tmp) as db:
+                runs.to_sql("runs", db, index=False, if_exists="replace")
+                evals.to_sql("evaluations", db, index=False, if_exists="replace")
+            db.close()
+            os.replace(tmp, root / DATABASE)
+        finally:
+            Path(tmp).unlink(missing_ok=True)
     return runs, evals
 
 

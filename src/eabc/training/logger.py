@@ -3,23 +3,34 @@
 from __future__ import annotations
 
 import csv
+import io
 import math
 from pathlib import Path
+
+from eabc.training.checkpoint import atomic_write
 
 LOG = "log.csv"
 CURVE = "curve.png"
 
 
 class RunLogger:
-    """Appends rows to ``log.csv`` and TensorBoard; on resume it drops rows after the checkpoint."""
+    """Appends rows to ``log.csv`` and TensorBoard; on resume it drops rows after the checkpoint.
+
+    Rows read back keep their cells as written (an empty cell stays empty, a number keeps its
+    text), so a resumed run's file is byte for byte the file of a run never interrupted.
+    """
 
     def __init__(self, run_dir: Path, resume_step: int = 0, tensorboard: bool = True):
         self.path = Path(run_dir) / LOG
         self.rows: list[dict[str, float]] = []
+        """Numbers of every row (an empty cell is absent), for checks such as divergence."""
+        self._cells: list[dict[str, str]] = []
+        """The same rows as the text written to the file."""
         if self.path.exists():
-            with open(self.path, newline="") as f:
-                rows = [{k: _number(v) for k, v in row.items()} for row in csv.DictReader(f)]
-            self.rows = [{**r, "step": int(r["step"])} for r in rows if r["step"] <= resume_step]
+            for cells in read_log(self.path):
+                if int(float(cells["step"])) <= resume_step:
+                    self._cells.append(cells)
+                    self.rows.append(_numbers(cells))
         self.writer = None
         if tensorboard:
             from tensorboardX import SummaryWriter  # noqa: PLC0415
@@ -29,6 +40,7 @@ class RunLogger:
 
     def log(self, row: dict[str, float]) -> None:
         self.rows.append(row)
+        self._cells.append({k: str(v) for k, v in row.items()})  # the text csv would write
         self._write_all()
         if self.writer is not None:
             for key, value in row.items():
@@ -38,23 +50,28 @@ class RunLogger:
 
     def _write_all(self) -> None:
         """Rewrite the whole file: small (one row per 1000 steps) and never left half-written."""
-        if not self.rows:
+        if not self._cells:
             return
-        columns = list(dict.fromkeys(k for row in self.rows for k in row))
-        tmp = self.path.with_name(self.path.name + ".tmp")
-        with open(tmp, "w", newline="") as f:
-            writer = csv.DictWriter(f, columns, restval="")
-            writer.writeheader()
-            writer.writerows(self.rows)
-        tmp.replace(self.path)
+        columns = list(dict.fromkeys(k for row in self._cells for k in row))
+        text = io.StringIO(newline="")
+        writer = csv.DictWriter(text, columns, restval="")
+        writer.writeheader()
+        writer.writerows(self._cells)
+        atomic_write(self.path, text.getvalue().encode())
 
     def close(self) -> None:
         if self.writer is not None:
             self.writer.close()
 
 
-def _number(text: str) -> float:
-    return float(text) if text not in ("", None) else math.nan
+def read_log(path: Path) -> list[dict[str, str]]:
+    """The rows of a ``log.csv`` as text, without their empty cells."""
+    with open(path, newline="") as f:
+        return [{k: v for k, v in row.items() if v not in ("", None)} for row in csv.DictReader(f)]
+
+
+def _numbers(cells: dict[str, str]) -> dict[str, float]:
+    return {k: int(float(v)) if k == "step" else float(v) for k, v in cells.items()}
 
 
 def plot_curve(evaluations: list[dict[str, float]], path: Path, title: str) -> None:
