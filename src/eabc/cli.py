@@ -339,7 +339,7 @@ def run_train(cmd: Train) -> dict:
 def run_evaluate(cmd: Evaluate) -> dict:
     from eabc.training import trainer  # noqa: PLC0415
 
-    run = trainer.resume(cmd.run_dir)
+    run = trainer.resume(cmd.run_dir, lock=False)  # reads only: a running run can be scored
     run.evaluator.episodes = cmd.episodes
     if cmd.seed is not None:
         run.evaluator.seed = cmd.seed

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 from typing import Any
 
 import numpy as np
@@ -67,7 +68,7 @@ class Dataset:
             set_(key, _as_2d(np.asarray(getattr(self, key), np.float32), key, self.name))
         set_("rewards", np.asarray(self.rewards, np.float32).reshape(-1))
         for key in ("terminals", "timeouts"):
-            set_(key, np.asarray(getattr(self, key)).reshape(-1).astype(bool))
+            set_(key, _flags(np.asarray(getattr(self, key)).reshape(-1), key, self.name))
         n = len(self.observations)
         if n == 0:
             raise DatasetError(f"{self.name}: the dataset is empty")
@@ -91,6 +92,18 @@ class Dataset:
                     f"{self.name}: {key} holds {bad.sum()} NaN/inf values (first at rows "
                     f"{rows[:5].tolist()}); clean or drop those transitions first"
                 )
+
+    def fingerprint(self) -> str:
+        """SHA-256 of the transitions (every field's dtype, shape and bytes): the same data gives
+        the same fingerprint on any machine, whatever file or name it came from."""
+        if "_fingerprint" not in self.__dict__:  # computed once (about 0.3 s per 1M transitions)
+            digest = hashlib.sha256()
+            for key in FIELDS:
+                array = np.ascontiguousarray(getattr(self, key))
+                digest.update(f"{key}:{array.dtype.str}:{array.shape};".encode())
+                digest.update(array.tobytes())
+            self.__dict__["_fingerprint"] = digest.hexdigest()
+        return self.__dict__["_fingerprint"]
 
     @property
     def size(self) -> int:
@@ -116,6 +129,19 @@ class Dataset:
         if self.ref_min_score is None or self.ref_max_score is None:
             return None
         return tasks.normalized_score(episode_return, self.ref_min_score, self.ref_max_score)
+
+
+def _flags(values: np.ndarray, key: str, name: str) -> np.ndarray:
+    """0/1 (or boolean) flags as booleans; anything else (0.5, -1, NaN) is refused."""
+    if values.dtype != bool:
+        bad = ~np.isin(values, (0, 1))
+        if bad.any():
+            rows = np.flatnonzero(bad)
+            raise DatasetError(
+                f"{name}: {key} must be 0 or 1, but {bad.sum()} values are not (first "
+                f"{values[rows[:3]].tolist()} at rows {rows[:3].tolist()}); fix those flags first"
+            )
+    return values.astype(bool)
 
 
 def _as_2d(array: np.ndarray, key: str, name: str) -> np.ndarray:

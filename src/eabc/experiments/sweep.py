@@ -24,8 +24,10 @@ import dataclasses
 import itertools
 import json
 import os
+import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -351,11 +353,15 @@ def run_local(
 ) -> None:
     """A pool of ``workers`` subprocesses (default: one per CPU core), one job each at a time.
 
-    Every job is ``python -m eabc.experiments.worker ROOT JOB_JSON``; a killed sweep kills its
-    workers, and the runs resume from their checkpoints next time.
+    Every job is ``python -m eabc.experiments.worker ROOT JOB_JSON``; a killed sweep (SIGINT,
+    SIGTERM, or SIGKILL, which the workers notice themselves) stops its workers, and the runs
+    resume from their checkpoints next time.
     """
+    from eabc.experiments.worker import PARENT  # noqa: PLC0415
+
     workers = workers or os.cpu_count() or 1
-    env = {**os.environ, **(SINGLE_THREAD if single_thread else {})}
+    env = {**os.environ, **(SINGLE_THREAD if single_thread else {}), PARENT: str(os.getpid())}
+    previous = _exit_on_sigterm()
     pending = list(job_list)
     active: list[tuple[subprocess.Popen, list[RunSpec], Any]] = []
     logs = root / "logs"
@@ -384,12 +390,27 @@ def run_local(
                 else:
                     log(f"finished {name}")
     finally:
-        for proc, _, out in active:
+        for proc, _, _out in active:
             proc.terminate()
+        for proc, _, out in active:
             proc.wait()
             out.close()
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
     if failures:
         raise RuntimeError(f"{len(failures)} job(s) failed: {', '.join(failures)}")
+
+
+def _exit_on_sigterm():
+    """Make SIGTERM unwind like Ctrl-C (so the pool stops its workers); the old handler, or
+    None off the main thread, where Python cannot set one."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+
+    def stop(signum, frame):
+        raise SystemExit(128 + signum)
+
+    return signal.signal(signal.SIGTERM, stop)
 
 
 def run_ray(

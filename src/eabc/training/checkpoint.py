@@ -1,7 +1,14 @@
-"""Checkpoints as msgpack (never pickle), written atomically: a temporary file, then a rename."""
+"""Checkpoints as msgpack (never pickle), written atomically: a temporary file, then a rename.
+
+A checkpoint file is the msgpack payload followed by a 40-byte trailer, ``EABCSUM1`` and the
+payload's SHA-256, checked on every read. Files from before the trailer (version 0) still load:
+they are checked for structure and for NaN/inf weights (the traces of corruption that can be seen
+without a checksum).
+"""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import tempfile
@@ -14,6 +21,12 @@ import numpy as np
 
 CHECKPOINT = "checkpoint.msgpack"
 CONFIG = "config.json"
+TRAILER = b"EABCSUM1"
+"""Marks a checkpoint that ends in its payload's SHA-256 (format version 1)."""
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that cannot be used; the message names the file and what to do."""
 
 
 def atomic_write(path: Path, data: bytes) -> None:
@@ -35,20 +48,96 @@ def atomic_write(path: Path, data: bytes) -> None:
 def save(run_dir: Path, payload: dict[str, Any]) -> None:
     """Save a pytree of arrays and plain values (train state, key, normaliser, history)."""
     state = flax.serialization.to_state_dict(jax.device_get(payload))
-    atomic_write(Path(run_dir) / CHECKPOINT, flax.serialization.msgpack_serialize(state))
+    data = flax.serialization.msgpack_serialize(state)
+    atomic_write(Path(run_dir) / CHECKPOINT, data + TRAILER + hashlib.sha256(data).digest())
+
+
+_REDO = (
+    "move it away and resume from a good copy, or delete it to train the run again from the start"
+)
 
 
 def load_raw(run_dir: Path) -> dict[str, Any]:
-    """The checkpoint as nested dicts of arrays and plain values."""
+    """The checkpoint as nested dicts of arrays and plain values, its checksum verified."""
     path = Path(run_dir) / CHECKPOINT
     if not path.exists():
         raise FileNotFoundError(f"no checkpoint in {run_dir}; the run has not saved one yet")
-    return flax.serialization.msgpack_restore(path.read_bytes())
+    try:
+        data = path.read_bytes()
+    except OSError as error:
+        raise CheckpointError(f"{path} cannot be read ({error.strerror}); {_REDO}") from None
+    checked = len(data) >= 40 and data[-40:-32] == TRAILER
+    if checked:
+        data, digest = data[:-40], data[-32:]
+        if hashlib.sha256(data).digest() != digest:
+            raise CheckpointError(f"{path} is corrupt (its checksum does not match); {_REDO}")
+    try:
+        raw = flax.serialization.msgpack_restore(data)
+    except Exception as error:  # noqa: BLE001 (msgpack raises many kinds on bad bytes)
+        raise CheckpointError(
+            f"{path} is corrupt or truncated ({type(error).__name__}); {_REDO}"
+        ) from None
+    if not isinstance(raw, dict):
+        raise CheckpointError(f"{path} is not a checkpoint of this package; {_REDO}")
+    if not checked:
+        bad = [name for name, leaf in _leaves(raw.get("agent", {})) if not _finite(leaf)]
+        if bad:
+            raise CheckpointError(
+                f"{path} holds NaN/inf in {bad[0]} (an old checkpoint without a checksum, likely "
+                f"corrupt); {_REDO}"
+            )
+    return raw
 
 
-def load(run_dir: Path, template: dict[str, Any]) -> dict[str, Any]:
-    """Restore into the structure of ``template`` (flax checks the structure)."""
-    return flax.serialization.from_state_dict(template, load_raw(run_dir))
+def load(run_dir: Path, template: dict[str, Any], what: str = "this run") -> dict[str, Any]:
+    """Restore into the structure of ``template``, refusing a checkpoint whose structure, shapes
+    or dtypes differ from it (another run's checkpoint: ``what`` names this run's settings)."""
+    raw = load_raw(run_dir)
+    check_structure(
+        raw, flax.serialization.to_state_dict(template), Path(run_dir) / CHECKPOINT, what
+    )
+    return flax.serialization.from_state_dict(template, raw)
+
+
+def check_structure(raw: Any, template: Any, path: Path, what: str, prefix: str = "") -> None:
+    """Raise :class:`CheckpointError` at the first key, shape or dtype where ``raw`` differs from
+    ``template`` (a ``None`` in ``template`` accepts anything)."""
+    foreign = f"it is not a checkpoint of {what}: {_REDO}"
+    if template is None:
+        return
+    if isinstance(template, dict):
+        if not isinstance(raw, dict):
+            raise CheckpointError(f"{path}: {prefix or 'the file'} is not a mapping; {foreign}")
+        missing = sorted(set(template) - set(raw))
+        extra = sorted(set(raw) - set(template))
+        if missing or extra:
+            where = f"{prefix}/" if prefix else ""
+            raise CheckpointError(
+                f"{path}: {where} has keys {sorted(raw)} where {what} has {sorted(template)}; "
+                f"{foreign}"
+            )
+        for key in template:
+            check_structure(raw[key], template[key], path, what, f"{prefix}/{key}".lstrip("/"))
+        return
+    want, got = np.asarray(template), np.asarray(raw)
+    if want.shape != got.shape or (want.dtype.kind in "fiub" and want.dtype != got.dtype):
+        raise CheckpointError(
+            f"{path}: {prefix} has shape {got.shape} {got.dtype} where {what} needs "
+            f"{want.shape} {want.dtype}; {foreign}"
+        )
+
+
+def _leaves(tree: Any, prefix: str = ""):
+    if isinstance(tree, dict):
+        for key, value in tree.items():
+            yield from _leaves(value, f"{prefix}/{key}".lstrip("/"))
+    else:
+        yield prefix, tree
+
+
+def _finite(leaf: Any) -> bool:
+    array = np.asarray(leaf)
+    return array.dtype.kind not in "fc" or bool(np.isfinite(array).all())
 
 
 def save_json(path: Path, data: dict) -> None:
@@ -66,4 +155,13 @@ def read_config(run_dir: Path) -> dict:
     path = Path(run_dir) / CONFIG
     if not path.exists():
         raise FileNotFoundError(f"{run_dir} is not a run directory (no {CONFIG})")
-    return json.loads(path.read_text())
+    try:
+        config = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise CheckpointError(
+            f"{path} cannot be read ({type(error).__name__}: {error}); restore it from a copy "
+            "or train the run again in a fresh directory"
+        ) from None
+    if not isinstance(config, dict):
+        raise CheckpointError(f"{path} is not a run configuration (not a JSON object)")
+    return config

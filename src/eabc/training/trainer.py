@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -29,7 +30,8 @@ from eabc.evaluation import Evaluator, check_spaces
 from eabc.policy import Policy
 from eabc.training import checkpoint
 from eabc.training.checkpoint import CONFIG, read_config
-from eabc.training.logger import CURVE, RunLogger, plot_curve
+from eabc.training.lock import RunLock
+from eabc.training.logger import CURVE, LOG, RunLogger, plot_curve
 
 SUMMARY = "summary.json"
 FINAL_EVALUATIONS = 10
@@ -83,7 +85,17 @@ def resolve_agent_config(
     unknown = set(overrides) - fields
     if unknown:
         raise ValueError(f"{algo} has no setting(s) {sorted(unknown)}; it has {sorted(fields)}")
-    if algo == "eabc" and "confidence_level" not in overrides:
+    bc_weight = overrides.get("bc_weight", getattr(algorithm.preset, "bc_weight", None))
+    if bc_weight == "quantile" and overrides.get("quantile_level") is None:
+        q = tasks.default_quantile_level(tasks.parse_task(dataset_name))
+        if q is None:
+            raise ValueError(
+                f"no default quantile level q for dataset {dataset_name!r} (SPEC section 5's "
+                "table covers hopper/halfcheetah/walker2d x the five kinds); pass --set "
+                "quantile_level=Q"
+            )
+        overrides["quantile_level"] = q
+    if algo == "eabc" and bc_weight == "bernoulli" and "confidence_level" not in overrides:
         p = tasks.default_confidence_level(tasks.parse_task(dataset_name))
         if p is None:
             raise ValueError(
@@ -113,6 +125,8 @@ class Run:
     state: dict[str, Any]
     """``agent`` (the algorithm's state), ``key``, ``evaluations`` (history), ``elapsed`` seconds
     and ``normalizer``: everything a checkpoint holds."""
+    lock: RunLock | None = None
+    """The run directory's writer lock, held from start/resume until training ends."""
 
     @property
     def step(self) -> int:
@@ -125,19 +139,21 @@ def start(
     agent_overrides: dict[str, Any] | None = None,
     dataset: Dataset | None = None,
 ) -> Run:
-    """Set up a new run in ``run_dir`` (which must not hold a run already)."""
+    """Set up a new run in ``run_dir`` (which must not hold a run already); the run holds the
+    directory's writer lock until :func:`train` ends."""
     run_dir = Path(run_dir)
-    if (run_dir / CONFIG).exists():
-        raise FileExistsError(
-            f"{run_dir} already holds a run; continue it with `eabc train --resume {run_dir}` or "
-            "choose another --run-dir"
-        )
+    _refuse_existing(run_dir)
     dataset = dataset if dataset is not None else load_dataset(config.dataset, config.cache_dir)
     agent_config = resolve_agent_config(
         config.algo, dataset.name, agent_overrides or {}, config.steps
     )
     run = _build(run_dir, config, agent_config, dataset, state=None)
-    run_dir.mkdir(parents=True, exist_ok=True)
+    run.lock = RunLock(run_dir).acquire()
+    try:
+        _refuse_existing(run_dir)  # again, now that no other writer can be starting here
+    except BaseException:
+        run.lock.release()
+        raise
     checkpoint.save_json(
         run_dir / CONFIG,
         {
@@ -146,6 +162,7 @@ def start(
             "dataset": {
                 "name": dataset.name,
                 "size": dataset.size,
+                "fingerprint": dataset.fingerprint(),
                 "env_id": run.evaluator.env_id,
                 "ref_min_score": dataset.ref_min_score,
                 "ref_max_score": dataset.ref_max_score,
@@ -156,9 +173,31 @@ def start(
     return run
 
 
-def resume(run_dir: str | Path, dataset: Dataset | None = None) -> Run:
-    """Reopen a run from its directory and latest checkpoint."""
+def _refuse_existing(run_dir: Path) -> None:
+    if (run_dir / CONFIG).exists():
+        raise FileExistsError(
+            f"{run_dir} already holds a run; continue it with `eabc train --resume {run_dir}` or "
+            "choose another --run-dir"
+        )
+
+
+def resume(run_dir: str | Path, dataset: Dataset | None = None, lock: bool = True) -> Run:
+    """Reopen a run from its directory and latest checkpoint (from step 0 if it died before its
+    first one). With ``lock`` (for training) the run holds the directory's writer lock until
+    :func:`train` ends; without it (to evaluate) nothing in the directory is written."""
     run_dir = Path(run_dir)
+    held = RunLock(run_dir).acquire() if lock else None
+    try:
+        run = _resume(run_dir, dataset, write=lock)
+    except BaseException:
+        if held is not None:
+            held.release()
+        raise
+    run.lock = held
+    return run
+
+
+def _resume(run_dir: Path, dataset: Dataset | None, write: bool) -> Run:
     saved = read_config(run_dir)
     config = TrainConfig(**saved["train"])
     algorithm = get_algorithm(config.algo)
@@ -169,6 +208,21 @@ def resume(run_dir: str | Path, dataset: Dataset | None = None) -> Run:
             f"{config.dataset} now has {dataset.size} transitions, but the run was trained on "
             f"{saved['dataset']['size']}; resume needs the same data"
         )
+    expected = saved["dataset"].get("fingerprint")  # absent in runs from before the check
+    if expected is not None and dataset.fingerprint() != expected:
+        raise DatasetError(
+            f"{config.dataset} is not the data {run_dir} was trained on (its content fingerprint "
+            f"changed from {expected[:12]}... to {dataset.fingerprint()[:12]}...); resume needs "
+            "the same data: restore that file, or train a new run"
+        )
+    if not (run_dir / checkpoint.CHECKPOINT).exists():
+        if not write:
+            raise FileNotFoundError(f"no checkpoint in {run_dir}; the run has not saved one yet")
+        # Killed before its first checkpoint: nothing to continue from, so start it again.
+        for name in (LOG, SUMMARY, CURVE):
+            (run_dir / name).unlink(missing_ok=True)
+        shutil.rmtree(run_dir / "tb", ignore_errors=True)
+        return _build(run_dir, config, agent_config, dataset, state=None)
     return _build(run_dir, config, agent_config, dataset, state="checkpoint")
 
 
@@ -206,12 +260,18 @@ def _build(run_dir, config, agent_config, dataset, state) -> Run:
         "normalizer": {"mean": normalizer.mean, "std": normalizer.std},
     }
     if state == "checkpoint":
-        saved = checkpoint.load(run_dir, {**fresh, "evaluations": None})
+        what = f"this {config.algo} run ({_settings_text(agent_config)}, {dataset.name})"
+        saved = checkpoint.load(run_dir, {**fresh, "evaluations": None}, what)
         fresh = {**saved, "evaluations": saved["evaluations"] or {}}
         normalizer = Normalizer(**{k: np.asarray(v) for k, v in saved["normalizer"].items()})
     return Run(
         run_dir, config, algorithm, agent_config, dataset, normalizer, evaluator, max_action, fresh
     )
+
+
+def _settings_text(agent_config) -> str:
+    shown = ("num_critics", "hidden_dims", "pessimism")
+    return ", ".join(f"{k}={getattr(agent_config, k)}" for k in shown if hasattr(agent_config, k))
 
 
 # One compiled program rather than dozens of eagerly compiled operations (and cacheable on disk).
@@ -291,11 +351,21 @@ def train_seeds(runs: list[Run], progress: bool = True) -> list[dict[str, Any]]:
     One compiled chunk advances every seed (``vmap`` of the scanned update); then every run logs,
     evaluates and checkpoints into its own directory exactly as if trained alone, so each can be
     resumed or reported on its own. Runs that are not at the same step are trained one by one.
+    Each run's writer lock is released when this returns or fails.
     """
+    try:
+        return _train_seeds(runs, progress)
+    finally:
+        for run in runs:
+            if run.lock is not None:
+                run.lock.release()
+
+
+def _train_seeds(runs: list[Run], progress: bool) -> list[dict[str, Any]]:
     first = runs[0]
     _check_same_setting(runs)
     if len({run.step for run in runs}) > 1:
-        return [train_seeds([run], progress)[0] for run in runs]
+        return [_train_seeds([run], progress)[0] for run in runs]
     config = first.config
     dataset = first.dataset
     preprocess = getattr(first.algorithm.module, "preprocess", None)

@@ -1,0 +1,77 @@
+"""One writer per run directory: an OS file lock (``filelock``) plus a note of who holds it.
+
+The lock is ``RUN_DIR/.lock`` (``flock``: the kernel drops it when its process dies, so a killed
+run never leaves a stale lock); ``RUN_DIR/.lock.owner`` says which process holds it, so that a
+second writer is told whom to wait for or stop.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import sys
+import time
+from pathlib import Path
+
+import filelock
+
+LOCK = ".lock"
+OWNER = ".lock.owner"
+
+
+class RunLockedError(RuntimeError):
+    """Another process is writing to this run directory."""
+
+
+class RunLock:
+    """Holds ``run_dir``'s lock from :meth:`acquire` until :meth:`release` (or process exit)."""
+
+    def __init__(self, run_dir: str | Path):
+        self.run_dir = Path(run_dir)
+        self._lock = filelock.FileLock(self.run_dir / LOCK, timeout=0)
+
+    def acquire(self) -> RunLock:
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        try:
+            self._lock.acquire()
+        except filelock.Timeout:
+            raise RunLockedError(
+                f"{self.run_dir} is in use by {holder(self.run_dir)}; wait for it to finish or "
+                "stop that process, then try again"
+            ) from None
+        owner = {
+            "pid": os.getpid(),
+            "host": socket.gethostname(),
+            "since": time.strftime("%Y-%m-%d %H:%M:%S"),
+            "command": " ".join(sys.argv),
+        }
+        (self.run_dir / OWNER).write_text(json.dumps(owner))
+        return self
+
+    def release(self) -> None:
+        if self._lock.is_locked:
+            (self.run_dir / OWNER).unlink(missing_ok=True)
+            self._lock.release()
+
+    @property
+    def held(self) -> bool:
+        return self._lock.is_locked
+
+    def __enter__(self) -> RunLock:
+        return self.acquire()
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+
+def holder(run_dir: Path) -> str:
+    """Who holds ``run_dir``'s lock, in words."""
+    try:
+        owner = json.loads((Path(run_dir) / OWNER).read_text())
+        return (
+            f"process {owner['pid']} on {owner['host']} (since {owner['since']}: "
+            f"{owner['command']})"
+        )
+    except (OSError, ValueError, KeyError):
+        return "another process"
