@@ -19,11 +19,17 @@ import numpy as np
 Params = dict[str, jax.Array]
 
 
-def init_mlp(key: jax.Array, sizes: Sequence[int], num_members: int | None = None) -> Params:
+def init_mlp(
+    key: jax.Array,
+    sizes: Sequence[int],
+    num_members: int | None = None,
+    layer_norm: bool = False,
+) -> Params:
     """Initialise an MLP with layer widths ``sizes`` (input first, output last).
 
     With ``num_members`` set, every array gets a leading ensemble axis and each member is drawn
-    independently.
+    independently. With ``layer_norm``, every hidden layer gets a LayerNorm (scale ``g{i}`` = 1,
+    offset ``h{i}`` = 0) between its product and its ReLU, as in SEEM and ReBRAC's critics.
     """
     params = {}
     keys = jax.random.split(key, 2 * (len(sizes) - 1))
@@ -36,11 +42,33 @@ def init_mlp(key: jax.Array, sizes: Sequence[int], num_members: int | None = Non
         params[f"b{layer}"] = jax.random.uniform(
             keys[2 * layer + 1], lead + (fan_out,), minval=-bound, maxval=bound
         )
+        if layer_norm and layer < len(sizes) - 2:
+            params[f"g{layer}"] = jnp.ones(lead + (fan_out,))
+            params[f"h{layer}"] = jnp.zeros(lead + (fan_out,))
     return params
 
 
 def num_layers(params: Params) -> int:
-    return len(params) // 2
+    return sum(1 for name in params if name.startswith("w"))
+
+
+LAYER_NORM_EPS = 1e-5
+"""PyTorch's and Flax's LayerNorm epsilon."""
+
+
+def _hidden(params: Params, layer: int, h: jax.Array) -> jax.Array:
+    """A hidden layer's output after its product: LayerNorm (if the network has one), then ReLU."""
+    if f"g{layer}" in params:
+        mean = h.mean(axis=-1, keepdims=True)
+        var = ((h - mean) ** 2).mean(axis=-1, keepdims=True)
+        h = (h - mean) * jax.lax.rsqrt(var + LAYER_NORM_EPS)
+        scale, offset = params[f"g{layer}"], params[f"h{layer}"]
+        if (
+            scale.ndim == 2
+        ):  # an ensemble: one scale per member, [K, 1, width] against [K, B, width]
+            scale, offset = scale[:, None, :], offset[:, None, :]
+        h = h * scale + offset
+    return jax.nn.relu(h)
 
 
 def mlp(params: Params, x: jax.Array) -> jax.Array:
@@ -49,7 +77,7 @@ def mlp(params: Params, x: jax.Array) -> jax.Array:
     for layer in range(n):
         x = x @ params[f"w{layer}"] + params[f"b{layer}"]
         if layer < n - 1:
-            x = jax.nn.relu(x)
+            x = _hidden(params, layer, x)
     return x
 
 
@@ -69,7 +97,7 @@ def ensemble_mlp(params: Params, x: jax.Array) -> jax.Array:
         w0 = params["w0"].transpose(1, 0, 2).reshape(fan_in, k * width)
         h = (x @ w0).reshape(-1, k, width).transpose(1, 0, 2) + params["b0"][:, None, :]
     for layer in range(1, n):
-        h = jax.nn.relu(h)
+        h = _hidden(params, layer - 1, h)
         h = jnp.einsum("kbi,kio->kbo", h, params[f"w{layer}"]) + params[f"b{layer}"][:, None, :]
     return h
 
@@ -117,6 +145,8 @@ def numpy_mlp(params: dict[str, np.ndarray]):
     on the order in which the CPU's BLAS kernel sums (OpenBLAS picks kernels by CPU; in float32 a
     1,000-step rollout, and so a generated dataset, differed between two of them).
     """
+    if any(name.startswith("g") for name in params):
+        raise ValueError("numpy_mlp runs actors, which have no LayerNorm")
     weights = [
         (np.asarray(params[f"w{i}"], np.float32).astype(np.float64),
          np.asarray(params[f"b{i}"], np.float32).astype(np.float64))

@@ -10,7 +10,21 @@ One call of :func:`update` is one gradient step ``t`` on a mini-batch ``(s, a, r
    ``lambda = alpha / mean|P|`` (no gradient) and ``w ~ Bernoulli(p)`` per sample;
 5. then the actor and critic targets move by Polyak averaging.
 
-``../shared/SPEC.md`` section 1 is the specification this file follows line by line.
+``../shared/SPEC.md`` section 1 is the specification this file follows line by line; with every
+setting at its default the rule is exactly that (published EABC). The settings below it are the
+variants of issue 14, each a switch of this one rule:
+
+- ``critic_layer_norm``: LayerNorm before every hidden ReLU of the critics (SEEM, Yue et al. 2023;
+  ReBRAC, Tarasov et al. 2023), which bounds how fast a critic can extrapolate;
+- ``pessimism_beta``: ``mean - beta * std`` instead of ``mean - std``;
+- ``independent_targets``: member ``i`` regresses on its own target ``r + gamma (1 - d) Q_targ_i``
+  (MSG, Ghasemipour et al. 2022), so the members stay diverse off the data and the actor's
+  ``mean - beta * std`` sees a real spread there;
+- ``bc_weight``: how the per-sample BC weight ``w`` is chosen. ``bernoulli`` is the paper's
+  ``w ~ Bernoulli(p)``. ``quantile`` is the authors' earlier rule (SPEC section 5): ``w = 1`` where
+  the q-quantile of the K values ``Q_k(s, a)`` exceeds ``m + s / sqrt(K)``. ``auto`` adapts p
+  during training (see :func:`adapt_confidence_level`): ``w ~ Bernoulli(p_t)`` with ``p_t`` moved
+  by offline signals only, never by evaluation returns.
 """
 
 from __future__ import annotations
@@ -27,6 +41,7 @@ from eabc import networks
 from eabc.agents.common import Batch
 
 Pessimism = Literal["mean-std", "min", "min2"]
+BCWeight = Literal["bernoulli", "quantile", "auto"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -61,6 +76,30 @@ class EABCConfig:
     """Adam learning rate of the critics."""
     hidden_dims: tuple[int, ...] = (256, 256)
     """Hidden layer widths of actor and critics."""
+    critic_layer_norm: bool = False
+    """LayerNorm before each hidden ReLU of the critics (SEEM; ReBRAC). Not in the paper."""
+    pessimism_beta: float = 1.0
+    """beta of ``mean - beta * std`` (pessimism mean-std); the paper's is 1."""
+    independent_targets: bool = False
+    """Each member regresses on its own target network's value (MSG) instead of one shared
+    pess(...) target; pessimism then acts through the actor's value only."""
+    bc_weight: BCWeight = "bernoulli"
+    """Per-sample BC weight: bernoulli (w ~ Bernoulli(p), the paper), quantile (the authors'
+    earlier ensemble rule, SPEC section 5) or auto (Bernoulli(p_t), p_t adapted; see below)."""
+    quantile_level: float | None = None
+    """q of the quantile rule; None: SPEC section 5's table for the dataset."""
+    auto_initial_p: float = 1.0
+    """auto: p at step 0 (start as TD3+BC, relax where the evidence allows)."""
+    auto_min_p: float = 0.0
+    """auto: the lowest p the controller may reach."""
+    auto_rate: float = 1e-3
+    """auto: how far p moves per actor step at a full-scale signal (|error| = 1)."""
+    auto_spread_ratio: float = 1.0
+    """auto: target of std_K Q(s, pi(s)) / std_K Q(s, a): p rises while the policy's actions are
+    more uncertain than the data's by more than this, and falls while they are less."""
+    auto_value_margin: float = 0.9
+    """auto: p jumps to 1 when the ensemble's mean value at the data's or the policy's actions
+    passes this fraction of max(0, max r) / (1 - gamma), the rewards seen so far allowing."""
 
     def __post_init__(self):
         if self.num_critics < 2:
@@ -71,6 +110,21 @@ class EABCConfig:
             raise ValueError(f"pessimism must be mean-std, min or min2, got {self.pessimism!r}")
         if self.policy_freq < 1:
             raise ValueError(f"policy_freq must be at least 1, got {self.policy_freq}")
+        if self.bc_weight not in ("bernoulli", "quantile", "auto"):
+            raise ValueError(
+                f"bc_weight must be bernoulli, quantile or auto, got {self.bc_weight!r}"
+            )
+        if self.pessimism_beta < 0:
+            raise ValueError(f"pessimism_beta must be >= 0, got {self.pessimism_beta}")
+        if self.quantile_level is not None and not 0.0 <= self.quantile_level <= 1.0:
+            raise ValueError(f"quantile_level q must lie in [0, 1], got {self.quantile_level}")
+        if not 0.0 <= self.auto_min_p <= self.auto_initial_p <= 1.0:
+            raise ValueError(
+                "auto p needs 0 <= auto_min_p <= auto_initial_p <= 1, got "
+                f"{self.auto_min_p} and {self.auto_initial_p}"
+            )
+        if self.auto_rate < 0 or self.auto_spread_ratio <= 0 or self.auto_value_margin <= 0:
+            raise ValueError("auto_rate must be >= 0, auto_spread_ratio and auto_value_margin > 0")
 
 
 PRESETS: dict[str, EABCConfig] = {
@@ -83,6 +137,10 @@ PRESETS: dict[str, EABCConfig] = {
     "td3": EABCConfig(
         num_critics=2, pessimism="min", actor_uses_ensemble=False, behavior_cloning=False
     ),
+    # The authors' earlier rule (SPEC section 5): BC switched per sample by the ensemble, q per dataset.
+    "eabc-quantile": EABCConfig(bc_weight="quantile"),
+    # EABC with p adapted during training from offline signals (no per-dataset p).
+    "eabc-auto": EABCConfig(bc_weight="auto"),
 }
 
 
@@ -96,6 +154,8 @@ class EABCState:
     critic_opt: optax.OptState
     step: jax.Array
     """Gradient steps taken so far."""
+    controller: dict[str, jax.Array] = flax.struct.field(default_factory=dict)
+    """bc_weight auto's state: ``p`` and the reward range seen so far (empty otherwise)."""
 
 
 def _optimizers(config: EABCConfig) -> tuple[optax.GradientTransformation, ...]:
@@ -106,9 +166,19 @@ def init(key: jax.Array, obs_dim: int, act_dim: int, config: EABCConfig) -> EABC
     actor_key, critic_key = jax.random.split(key)
     actor = networks.init_mlp(actor_key, (obs_dim, *config.hidden_dims, act_dim))
     critic = networks.init_mlp(
-        critic_key, (obs_dim + act_dim, *config.hidden_dims, 1), num_members=config.num_critics
+        critic_key,
+        (obs_dim + act_dim, *config.hidden_dims, 1),
+        num_members=config.num_critics,
+        layer_norm=config.critic_layer_norm,
     )
     actor_tx, critic_tx = _optimizers(config)
+    controller = {}
+    if config.bc_weight == "auto":
+        controller = {
+            "p": jnp.asarray(config.auto_initial_p, jnp.float32),
+            "reward_min": jnp.asarray(jnp.inf, jnp.float32),
+            "reward_max": jnp.asarray(-jnp.inf, jnp.float32),
+        }
     return EABCState(
         actor=actor,
         critic=critic,
@@ -117,13 +187,17 @@ def init(key: jax.Array, obs_dim: int, act_dim: int, config: EABCConfig) -> EABC
         actor_opt=actor_tx.init(actor),
         critic_opt=critic_tx.init(critic),
         step=jnp.zeros((), jnp.int32),
+        controller=controller,
     )
 
 
-def pessimistic_value(q: jax.Array, pessimism: Pessimism, key: jax.Array) -> jax.Array:
-    """Collapse ensemble values ``q: [K, B]`` into one pessimistic value per sample, eq. (4)."""
+def pessimistic_value(
+    q: jax.Array, pessimism: Pessimism, key: jax.Array, beta: float = 1.0
+) -> jax.Array:
+    """Collapse ensemble values ``q: [K, B]`` into one pessimistic value per sample, eq. (4)
+    (``mean - beta * std``; the paper's beta is 1)."""
     if pessimism == "mean-std":
-        return q.mean(axis=0) - q.std(axis=0, ddof=1)
+        return q.mean(axis=0) - beta * q.std(axis=0, ddof=1)
     if pessimism == "min":
         return q.min(axis=0)
     pair = jax.random.choice(key, q.shape[0], (2,), replace=False)
@@ -137,12 +211,16 @@ def critic_loss(critic, critic_target, actor_target, batch: Batch, key, config, 
     next_action = networks.actor_apply(actor_target, batch.next_observations, max_action)
     next_action = jnp.clip(next_action + noise, -max_action, max_action)
     target_q = networks.critic_apply(critic_target, batch.next_observations, next_action)
-    y = batch.rewards + config.discount * (1.0 - batch.dones) * pessimistic_value(
-        target_q, config.pessimism, pess_key
-    )
+    if config.independent_targets:  # [K, B]: member i bootstraps from its own target network
+        next_value = target_q
+    else:  # [1, B]: one shared pessimistic target
+        next_value = pessimistic_value(target_q, config.pessimism, pess_key, config.pessimism_beta)[
+            None
+        ]
+    y = batch.rewards + config.discount * (1.0 - batch.dones) * next_value
     y = jax.lax.stop_gradient(y)
     q = networks.critic_apply(critic, batch.observations, batch.actions)
-    loss = ((q - y[None]) ** 2).mean(axis=1).sum()
+    loss = ((q - y) ** 2).mean(axis=1).sum()
     return loss, {
         "critic_loss": loss,
         "q_mean": q.mean(),
@@ -151,29 +229,82 @@ def critic_loss(critic, critic_target, actor_target, batch: Batch, key, config, 
     }
 
 
-def actor_loss(actor, critic, batch: Batch, key, config, max_action, keep=None):
-    """The actor loss; ``keep`` (per sample, in [0, 1]) replaces the Bernoulli(p) BC mask if given."""
+def actor_loss(actor, critic, batch: Batch, key, config, max_action, keep=None, p=None):
+    """The actor loss; ``keep`` (per sample, in [0, 1]) replaces the Bernoulli BC mask if given,
+    and ``p`` (a traced scalar: bc_weight auto's current p) replaces ``config.confidence_level``."""
     pess_key, mask_key = jax.random.split(key)
     pi = networks.actor_apply(actor, batch.observations, max_action)
     q = networks.critic_apply(critic, batch.observations, pi)
-    value = pessimistic_value(q, config.pessimism, pess_key) if config.actor_uses_ensemble else q[0]
+    if config.actor_uses_ensemble:
+        value = pessimistic_value(q, config.pessimism, pess_key, config.pessimism_beta)
+    else:
+        value = q[0]
     if not config.behavior_cloning:
         loss = -value.mean()
         return loss, {"actor_loss": loss, "actor_value": value.mean()}
     lam = jax.lax.stop_gradient(config.alpha / jnp.abs(value).mean())
     if keep is None:
-        keep = jax.random.bernoulli(mask_key, config.confidence_level, value.shape)
+        p = config.confidence_level if p is None else p
+        keep = jax.random.bernoulli(mask_key, p, value.shape)
     keep = keep.astype(pi.dtype)
     bc = (keep * ((pi - batch.actions) ** 2).mean(axis=-1)).mean()
     loss = -lam * value.mean() + bc
     return loss, {
         "actor_loss": loss,
         "actor_value": value.mean(),
+        "actor_q_mean": q.mean(),
         # The ensemble's spread at the policy's own actions: the penalty mean - std actually pays.
         "policy_q_std": q.std(axis=0, ddof=1).mean(),
         "lambda": lam,
         "bc_loss": bc,
         "bc_fraction": keep.mean(),
+    }
+
+
+def quantile_keep(critic, batch: Batch, config: EABCConfig) -> jax.Array:
+    """The authors' earlier BC weight (SPEC section 5): ``w = 1`` where the q-quantile of the K
+    online values at the batch's own actions exceeds ``mean + std / sqrt(K)`` (ddof 1)."""
+    if config.quantile_level is None:
+        raise ValueError("bc_weight quantile needs quantile_level q (SPEC section 5's table)")
+    q = jax.lax.stop_gradient(networks.critic_apply(critic, batch.observations, batch.actions))
+    upper = jnp.quantile(q, config.quantile_level, axis=0)  # linear, as torch.quantile
+    k = q.shape[0]
+    return (upper > q.mean(axis=0) + q.std(axis=0, ddof=1) / jnp.sqrt(k)).astype(q.dtype)
+
+
+def adapt_confidence_level(controller, batch: Batch, metrics, config: EABCConfig):
+    """One step of bc_weight auto's controller for p, after an actor step.
+
+    Signals, all offline (from the batch and the critics, never from evaluation returns):
+
+    - the spread ratio ``rho = std_K Q(s, pi(s)) / std_K Q(s, a)`` (batch means, online critics):
+      above 1 the policy acts where the ensemble is less sure than at the data's own actions;
+    - the value bounds ``V_hi = max(0, max r) / (1 - gamma)`` and ``V_lo = min(0, min r) /
+      (1 - gamma)`` over the rewards seen so far: no policy's value can lie outside them.
+
+    Rule: ``p <- clip(p + rate * clip(log(rho / auto_spread_ratio), -1, 1), auto_min_p, 1)``;
+    and ``p <- 1`` at once when the mean value at the data's or the policy's actions passes
+    ``auto_value_margin * V_hi`` or falls below ``V_lo - 0.1 (V_hi - V_lo)``, or is not finite
+    (the critics are extrapolating: clone fully until they come back). So p falls while the ensemble says the policy stays where it is sure, and rises
+    as soon as the policy leaves the data's support or the values leave what the rewards allow.
+    """
+    low = jnp.minimum(controller["reward_min"], batch.rewards.min())
+    high = jnp.maximum(controller["reward_max"], batch.rewards.max())
+    scale = 1.0 / (1.0 - config.discount)
+    top, bottom = jnp.maximum(high, 0.0) * scale, jnp.minimum(low, 0.0) * scale
+    ceiling = config.auto_value_margin * top
+    floor = bottom - 0.1 * (top - bottom)  # the divergence flag's own lower edge
+    tiny = 1e-6
+    ratio = (metrics["policy_q_std"] + tiny) / (metrics["q_ensemble_std"] + tiny)
+    error = jnp.clip(jnp.log(ratio / config.auto_spread_ratio), -1.0, 1.0)
+    p = jnp.clip(controller["p"] + config.auto_rate * error, config.auto_min_p, 1.0)
+    values = jnp.stack([metrics["q_mean"], metrics["actor_q_mean"]])
+    out_of_range = jnp.any((values > ceiling) | (values < floor)) | ~jnp.all(jnp.isfinite(values))
+    p = jnp.where(out_of_range, 1.0, p)
+    return {"p": p, "reward_min": low, "reward_max": high}, {
+        "auto_p": p,
+        "spread_ratio": ratio,
+        "value_ceiling": ceiling,
     }
 
 
@@ -187,7 +318,9 @@ def critic_step(state, batch: Batch, key, config: EABCConfig, max_action: float)
     return optax.apply_updates(state.critic, updates), critic_opt, metrics
 
 
-def delayed_actor_step(state, critic, step, batch: Batch, key, config, max_action, keep=None):
+def delayed_actor_step(
+    state, critic, step, batch: Batch, key, config, max_action, keep=None, p=None
+):
     """Every ``policy_freq`` steps: an actor step, then Polyak averaging of both targets.
 
     Returns ``(actor, actor_opt, actor_target, critic_target), metrics`` (zeros when skipped).
@@ -196,7 +329,7 @@ def delayed_actor_step(state, critic, step, batch: Batch, key, config, max_actio
 
     def actor_step(_):
         grads, metrics = jax.grad(actor_loss, has_aux=True)(
-            state.actor, critic, batch, key, config, max_action, keep
+            state.actor, critic, batch, key, config, max_action, keep, p
         )
         updates, actor_opt = actor_tx.update(grads, state.actor_opt, state.actor)
         actor = optax.apply_updates(state.actor, updates)
@@ -219,11 +352,24 @@ def update(
 ) -> tuple[EABCState, dict[str, jax.Array]]:
     """One gradient step of Algorithm 1. Pure: the same inputs always give the same outputs."""
     critic_key, actor_key = jax.random.split(key)
+    # The quantile rule reads the critics before this step's update (the authors' order).
+    keep = quantile_keep(state.critic, batch, config) if config.bc_weight == "quantile" else None
+    p = state.controller["p"] if config.bc_weight == "auto" else None
     critic, critic_opt, critic_metrics = critic_step(state, batch, critic_key, config, max_action)
     step = state.step + 1
     (actor, actor_opt, actor_target, critic_target), actor_metrics = delayed_actor_step(
-        state, critic, step, batch, actor_key, config, max_action
+        state, critic, step, batch, actor_key, config, max_action, keep, p
     )
+    controller, controller_metrics = state.controller, {}
+    if config.bc_weight == "auto":
+        adapted, controller_metrics = adapt_confidence_level(
+            state.controller, batch, {**critic_metrics, **actor_metrics}, config
+        )
+        updated = step % config.policy_freq == 0
+        controller = jax.tree.map(
+            lambda new, old: jnp.where(updated, new, old), adapted, state.controller
+        )
+        controller_metrics["auto_p"] = controller["p"]
     new_state = EABCState(
         actor=actor,
         critic=critic,
@@ -232,6 +378,12 @@ def update(
         actor_opt=actor_opt,
         critic_opt=critic_opt,
         step=step,
+        controller=controller,
     )
-    metrics = {**critic_metrics, **actor_metrics, "actor_updated": step % config.policy_freq == 0}
+    metrics = {
+        **critic_metrics,
+        **actor_metrics,
+        **controller_metrics,
+        "actor_updated": step % config.policy_freq == 0,
+    }
     return new_state, metrics

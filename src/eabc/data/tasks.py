@@ -44,6 +44,25 @@ CONFIDENCE_LEVEL: dict[tuple[str, str], float] = {
     ("walker2d", "random"): 0.95,
 }
 
+# SPEC section 5: q of the authors' earlier quantile BC rule per (environment, dataset kind).
+QUANTILE_LEVEL: dict[tuple[str, str], float] = {
+    ("halfcheetah", "expert"): 1.0,
+    ("hopper", "expert"): 0.9,
+    ("walker2d", "expert"): 1.0,
+    ("halfcheetah", "medium-expert"): 1.0,
+    ("hopper", "medium-expert"): 0.9,
+    ("walker2d", "medium-expert"): 1.0,
+    ("halfcheetah", "medium"): 0.05,
+    ("hopper", "medium"): 0.9,
+    ("walker2d", "medium"): 1.0,
+    ("halfcheetah", "medium-replay"): 0.05,
+    ("hopper", "medium-replay"): 0.45,
+    ("walker2d", "medium-replay"): 0.0,
+    ("halfcheetah", "random"): 0.05,
+    ("hopper", "random"): 0.05,
+    ("walker2d", "random"): 0.0,
+}
+
 _NAME = re.compile(
     r"(?P<env>hopper|halfcheetah|walker2d|ant)[-_]"
     r"(?P<kind>medium[-_]replay|medium[-_]expert|random|medium|expert)(?![a-z])"
@@ -60,6 +79,10 @@ def parse_task(text: str) -> tuple[str, str] | None:
 
 def default_confidence_level(task: tuple[str, str] | None) -> float | None:
     return None if task is None else CONFIDENCE_LEVEL.get(task)
+
+
+def default_quantile_level(task: tuple[str, str] | None) -> float | None:
+    return None if task is None else QUANTILE_LEVEL.get(task)
 
 
 def normalized_score(episode_return: float, ref_min_score: float, ref_max_score: float) -> float:

@@ -1,0 +1,260 @@
+"""The variants of the EABC rule (issue 14) against hand computations, and the auto-p controller's
+response to synthetic signals."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from handcalc import ACT, OBS, B, member, np_mlp
+from learning import MARGIN, late_gain
+
+from eabc import networks
+from eabc.agents import eabc
+from eabc.training import trainer
+
+
+def tiny(**kw):
+    return dataclasses.replace(eabc.EABCConfig(hidden_dims=(8, 8), num_critics=4), **kw)
+
+
+def np_layer_norm_q(critic, k, obs, act):
+    """Every member's Q with LayerNorm before each hidden ReLU, in float64."""
+    out = []
+    for i in range(k):
+        params = {name: np.asarray(v[i], np.float64) for name, v in critic.items()}
+        x = np.concatenate([obs, act], -1)
+        n = sum(name.startswith("w") for name in params)
+        for layer in range(n):
+            x = x @ params[f"w{layer}"] + params[f"b{layer}"]
+            if layer < n - 1:
+                mean, var = x.mean(-1, keepdims=True), x.var(-1, keepdims=True)
+                x = (x - mean) / np.sqrt(var + 1e-5) * params[f"g{layer}"] + params[f"h{layer}"]
+                x = np.maximum(x, 0.0)
+        out.append(x[:, 0])
+    return np.stack(out)
+
+
+def test_layer_norm_critic_matches_hand_computation(batch):
+    config = tiny(critic_layer_norm=True)
+    state = eabc.init(jax.random.PRNGKey(0), OBS, ACT, config)
+    assert state.critic["g0"].shape == (4, 8) and "g2" not in state.critic
+    # Non-trivial scale and offset, so the test sees them used per member.
+    rng = np.random.default_rng(0)
+    critic = {
+        **state.critic,
+        **{n: jnp.asarray(rng.normal(size=(4, 8)), jnp.float32) for n in ("g0", "h0", "g1", "h1")},
+    }
+    got = networks.critic_apply(critic, batch.observations, batch.actions)
+    s, a = (np.asarray(x, np.float64) for x in (batch.observations, batch.actions))
+    np.testing.assert_allclose(got, np_layer_norm_q(critic, 4, s, a), rtol=1e-4, atol=1e-5)
+    assert networks.num_layers(critic) == 3
+
+
+def _target_inputs(state, batch, key, config):
+    noise_key, _ = jax.random.split(key)
+    noise = np.clip(np.asarray(jax.random.normal(noise_key, (B, ACT))) * 0.2, -0.5, 0.5)
+    s2 = np.asarray(batch.next_observations, np.float64)
+    a2 = np.clip(np.tanh(np_mlp(state.actor_target, s2)) + noise, -1, 1)
+    k = config.num_critics
+    sa2 = np.concatenate([s2, a2], -1)
+    q_next = np.stack([np_mlp(member(state.critic_target, i), sa2)[:, 0] for i in range(k)])
+    s, a = (np.asarray(x, np.float64) for x in (batch.observations, batch.actions))
+    q = np.stack(
+        [np_mlp(member(state.critic, i), np.concatenate([s, a], -1))[:, 0] for i in range(k)]
+    )
+    r, d = np.asarray(batch.rewards, np.float64), np.asarray(batch.dones, np.float64)
+    return q, q_next, r, d
+
+
+@pytest.mark.parametrize("beta", [0.0, 2.5])
+def test_pessimism_beta_scales_the_std_in_the_shared_target(batch, beta):
+    config = tiny(pessimism_beta=beta)
+    state = eabc.init(jax.random.PRNGKey(1), OBS, ACT, config)
+    state = state.replace(critic_target=jax.tree.map(lambda x: x * 0.9 + 0.01, state.critic))
+    key = jax.random.PRNGKey(4)
+    loss, metrics = eabc.critic_loss(
+        state.critic, state.critic_target, state.actor_target, batch, key, config, 1.0
+    )
+    q, q_next, r, d = _target_inputs(state, batch, key, config)
+    y = r + 0.99 * (1 - d) * (q_next.mean(0) - beta * q_next.std(0, ddof=1))
+    np.testing.assert_allclose(loss, ((q - y) ** 2).mean(1).sum(), rtol=1e-4)
+    np.testing.assert_allclose(metrics["target_mean"], y.mean(), rtol=1e-4)
+
+
+def test_independent_targets_give_each_member_its_own_target(batch):
+    config = tiny(independent_targets=True)
+    state = eabc.init(jax.random.PRNGKey(1), OBS, ACT, config)
+    state = state.replace(critic_target=jax.tree.map(lambda x: x * 0.9 + 0.01, state.critic))
+    key = jax.random.PRNGKey(4)
+    loss, _ = eabc.critic_loss(
+        state.critic, state.critic_target, state.actor_target, batch, key, config, 1.0
+    )
+    q, q_next, r, d = _target_inputs(state, batch, key, config)
+    y = r + 0.99 * (1 - d) * q_next  # [K, B]
+    np.testing.assert_allclose(loss, ((q - y) ** 2).mean(1).sum(), rtol=1e-4)
+    shared = r + 0.99 * (1 - d) * (q_next.mean(0) - q_next.std(0, ddof=1))
+    assert not np.isclose(float(loss), ((q - shared) ** 2).mean(1).sum(), rtol=1e-3)
+
+
+def test_actor_uses_beta_in_its_pessimistic_value(batch):
+    config = tiny(pessimism_beta=3.0, confidence_level=0.0)
+    state = eabc.init(jax.random.PRNGKey(2), OBS, ACT, config)
+    _, metrics = eabc.actor_loss(
+        state.actor, state.critic, batch, jax.random.PRNGKey(0), config, 1.0
+    )
+    s = np.asarray(batch.observations, np.float64)
+    pi = np.tanh(np_mlp(state.actor, s))
+    q = np.stack(
+        [np_mlp(member(state.critic, i), np.concatenate([s, pi], -1))[:, 0] for i in range(4)]
+    )
+    expected = (q.mean(0) - 3.0 * q.std(0, ddof=1)).mean()
+    np.testing.assert_allclose(metrics["actor_value"], expected, rtol=1e-4)
+
+
+@pytest.mark.parametrize("level", [0.05, 0.45, 0.9, 1.0])
+def test_quantile_rule_matches_hand_computation(batch, level):
+    config = tiny(bc_weight="quantile", quantile_level=level, num_critics=5)
+    state = eabc.init(jax.random.PRNGKey(3), OBS, ACT, config)
+    got = np.asarray(eabc.quantile_keep(state.critic, batch, config))
+    s, a = (np.asarray(x, np.float64) for x in (batch.observations, batch.actions))
+    q = np.stack(
+        [np_mlp(member(state.critic, i), np.concatenate([s, a], -1))[:, 0] for i in range(5)]
+    )
+    upper = np.quantile(q, level, axis=0)  # linear interpolation, as torch.quantile
+    expected = upper > q.mean(0) + q.std(0, ddof=1) / np.sqrt(5)
+    np.testing.assert_array_equal(got, expected.astype(np.float32))
+    if level == 1.0:  # the maximum is above mean + std / sqrt(K) for any non-constant ensemble
+        assert got.all()
+
+
+def test_quantile_rule_masks_the_actor_step_with_the_pre_update_critics(batch):
+    config = tiny(bc_weight="quantile", quantile_level=0.45, num_critics=5)
+    state = eabc.init(jax.random.PRNGKey(3), OBS, ACT, config)
+    state = state.replace(step=jnp.ones((), jnp.int32))  # the next step updates the actor
+    _, metrics = eabc.update(state, batch, jax.random.PRNGKey(0), config, 1.0)
+    keep = eabc.quantile_keep(state.critic, batch, config)
+    np.testing.assert_allclose(metrics["bc_fraction"], keep.mean())
+
+
+def _controller(p=0.5, rewards=(0.0, 1.0)):
+    return {
+        "p": jnp.asarray(p),
+        "reward_min": jnp.asarray(rewards[0]),
+        "reward_max": jnp.asarray(rewards[1]),
+    }
+
+
+def _signals(policy_std, data_std, q_mean=10.0, actor_q_mean=10.0):
+    return {
+        "policy_q_std": jnp.asarray(policy_std),
+        "q_ensemble_std": jnp.asarray(data_std),
+        "q_mean": jnp.asarray(q_mean),
+        "actor_q_mean": jnp.asarray(actor_q_mean),
+    }
+
+
+def test_auto_p_rises_when_the_policy_is_less_certain_than_the_data(batch):
+    config = tiny(bc_weight="auto", auto_rate=0.01)
+    rise, m = eabc.adapt_confidence_level(_controller(), batch, _signals(2.0, 1.0), config)
+    np.testing.assert_allclose(rise["p"], 0.5 + 0.01 * np.log(2.0), rtol=1e-5)
+    np.testing.assert_allclose(m["spread_ratio"], 2.0, rtol=1e-5)
+    fall, _ = eabc.adapt_confidence_level(_controller(), batch, _signals(0.5, 1.0), config)
+    np.testing.assert_allclose(fall["p"], 0.5 - 0.01 * np.log(2.0), rtol=1e-5)
+    # The error is clipped to [-1, 1]: a huge ratio moves p by at most the rate.
+    big, _ = eabc.adapt_confidence_level(_controller(), batch, _signals(1e6, 1.0), config)
+    np.testing.assert_allclose(big["p"], 0.51, rtol=1e-5)
+    # The target ratio shifts the set point.
+    shifted = dataclasses.replace(config, auto_spread_ratio=2.0)
+    same, _ = eabc.adapt_confidence_level(_controller(), batch, _signals(2.0, 1.0), shifted)
+    np.testing.assert_allclose(same["p"], 0.5, rtol=1e-6)
+
+
+def test_auto_p_stays_within_its_bounds(batch):
+    config = tiny(bc_weight="auto", auto_rate=0.3, auto_min_p=0.2)
+    controller = _controller(p=0.5)
+    for _ in range(10):
+        controller, _ = eabc.adapt_confidence_level(controller, batch, _signals(0.01, 1.0), config)
+    np.testing.assert_allclose(controller["p"], 0.2)
+    for _ in range(10):
+        controller, _ = eabc.adapt_confidence_level(controller, batch, _signals(100.0, 1.0), config)
+    np.testing.assert_allclose(controller["p"], 1.0)
+
+
+def test_auto_p_jumps_to_full_cloning_when_values_leave_what_rewards_allow(batch):
+    config = tiny(bc_weight="auto", auto_rate=0.01, auto_value_margin=0.9)
+    # The batch's rewards extend the range seen so far.
+    seen, _ = eabc.adapt_confidence_level(
+        _controller(rewards=(0.0, 0.0)), batch, _signals(1.0, 1.0), config
+    )
+    np.testing.assert_allclose(seen["reward_max"], float(np.max(batch.rewards)))
+    np.testing.assert_allclose(seen["reward_min"], float(np.min(batch.rewards)))
+    ceiling = 0.9 * 1.0 / (1 - 0.99)  # reward_max 1 -> V_hi = 100
+    batch = dataclasses.replace(batch, rewards=jnp.clip(batch.rewards, -0.5, 0.5))
+    below, m = eabc.adapt_confidence_level(
+        _controller(p=0.1, rewards=(0.0, 5.0)), batch, _signals(0.5, 1.0, q_mean=80.0), config
+    )
+    assert float(below["p"]) < 0.1
+    above, m = eabc.adapt_confidence_level(
+        _controller(p=0.1, rewards=(-1e-3, 1.0)), batch, _signals(0.5, 1.0, q_mean=100.0), config
+    )
+    np.testing.assert_allclose(m["value_ceiling"], ceiling, rtol=1e-5)
+    np.testing.assert_allclose(above["p"], 1.0)
+    # At the policy's actions too, and for values that are not finite.
+    policy, _ = eabc.adapt_confidence_level(
+        _controller(p=0.1), batch, _signals(0.5, 1.0, actor_q_mean=91.0), config
+    )
+    nan, _ = eabc.adapt_confidence_level(
+        _controller(p=0.1), batch, _signals(0.5, 1.0, q_mean=np.nan), config
+    )
+    assert float(policy["p"]) == 1.0 and float(nan["p"]) == 1.0
+
+
+def test_auto_p_moves_only_on_actor_steps_and_drives_the_mask(batch):
+    config = tiny(bc_weight="auto", auto_initial_p=0.5, auto_rate=0.05)
+    state = eabc.init(jax.random.PRNGKey(0), OBS, ACT, config)
+    np.testing.assert_allclose(state.controller["p"], 0.5)
+    s1, _ = eabc.update(state, batch, jax.random.PRNGKey(1), config, 1.0)  # critic only
+    np.testing.assert_array_equal(s1.controller["p"], state.controller["p"])
+    s2, m2 = eabc.update(s1, batch, jax.random.PRNGKey(2), config, 1.0)  # actor step
+    assert float(s2.controller["p"]) != 0.5
+    np.testing.assert_allclose(m2["auto_p"], s2.controller["p"])
+    # The actor step's Bernoulli mask used p = 0.5 (the controller's value before the step).
+    _, mask_key = jax.random.split(jax.random.split(jax.random.PRNGKey(2))[1])
+    expected = jax.random.bernoulli(mask_key, 0.5, (B,)).mean()
+    np.testing.assert_allclose(m2["bc_fraction"], expected)
+
+
+def test_variant_presets_resolve_against_the_dataset():
+    quantile = trainer.resolve_agent_config("eabc-quantile", "hopper-medium-replay", {})
+    assert quantile.bc_weight == "quantile" and quantile.quantile_level == 0.45
+    with pytest.raises(ValueError, match="quantile_level"):
+        trainer.resolve_agent_config("eabc-quantile", "my-data", {})
+    # auto needs no p, on any data; published EABC still needs Table 3's.
+    assert trainer.resolve_agent_config("eabc-auto", "my-data", {}).bc_weight == "auto"
+    eabc_q = trainer.resolve_agent_config(
+        "eabc", "my-data", {"bc_weight": "quantile", "quantile_level": 0.5}
+    )
+    assert eabc_q.quantile_level == 0.5
+    with pytest.raises(ValueError, match="confidence level"):
+        trainer.resolve_agent_config("eabc", "my-data", {})
+
+
+def test_invalid_variant_settings_are_refused():
+    with pytest.raises(ValueError, match="bc_weight"):
+        eabc.EABCConfig(bc_weight="sometimes")
+    with pytest.raises(ValueError, match="quantile_level"):
+        eabc.EABCConfig(quantile_level=1.5)
+    with pytest.raises(ValueError, match="auto_min_p"):
+        eabc.EABCConfig(auto_min_p=0.8, auto_initial_p=0.5)
+    with pytest.raises(ValueError, match="pessimism_beta"):
+        eabc.EABCConfig(pessimism_beta=-1.0)
+
+
+def test_eabc_auto_learns(tmp_path, pendulum_dataset):
+    overrides = {"num_critics": 4, "critic_layer_norm": True}
+    untrained, late, evaluations = late_gain(tmp_path, pendulum_dataset, "eabc-auto", overrides)
+    assert late > untrained + MARGIN, (untrained, late, evaluations)
