@@ -14,6 +14,18 @@ from eabc import compile_cache
 from eabc.training.online import SACTrainConfig
 from eabc.training.trainer import TrainConfig
 
+SWEEP_PRESETS = (
+    "table1",
+    "table6",
+    "ablation-k",
+    "ablation-p",
+    "ablation-pess",
+    "study-screen",
+    "study",
+    "study-1m",
+)
+"""The names of ``eabc.experiments.sweep.PRESETS`` (a test checks they agree)."""
+
 
 @dataclasses.dataclass(frozen=True)
 class AgentOverrides:
@@ -154,8 +166,9 @@ class Sweep:
 
     spec: tyro.conf.Positional[str | None] = None
     """A YAML file with datasets, algos, seeds, steps, grid and train keys (optional)."""
-    preset: Literal["table1", "table6", "ablation-k", "ablation-p", "ablation-pess"] | None = None
-    """One of the paper's grids (15 datasets x its algorithms or settings x 5 seeds)."""
+    preset: Literal[SWEEP_PRESETS] | None = None  # type: ignore[valid-type]
+    """The paper's grids (table1, table6, ablation-*: 15 datasets x 5 seeds) or issue 14's study
+    (study-screen: every EABC variant, 2 seeds x 50K steps; study: 3 seeds x 100K; study-1m)."""
     root: str = "sweeps/default"
     """The sweep's directory (runs, logs, results)."""
     datasets: tuple[str, ...] = ()

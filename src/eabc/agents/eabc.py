@@ -141,6 +141,8 @@ PRESETS: dict[str, EABCConfig] = {
     "eabc-quantile": EABCConfig(bc_weight="quantile"),
     # EABC with p adapted during training from offline signals (no per-dataset p).
     "eabc-auto": EABCConfig(bc_weight="auto"),
+    # The candidate for issue 14's recommended variant: automatic p on LayerNorm critics.
+    "eabc-robust": EABCConfig(bc_weight="auto", critic_layer_norm=True),
 }
 
 

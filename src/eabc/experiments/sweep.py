@@ -44,6 +44,30 @@ SHORT = {"num_critics": "K", "confidence_level": "p"}
 """Short names used in run ids and labels."""
 TRAIN_FIELDS = {f.name for f in dataclasses.fields(TrainConfig)} - {"dataset", "algo", "seed"}
 
+# Issue 14's study: where published EABC fails on our data and what fixes it, at lengths this
+# machine affords (final = mean of the last 10 of the evaluations every 5,000 steps x 10 episodes).
+STUDY_DATASETS = [
+    "hopper-medium",
+    "halfcheetah-medium",
+    "hopper-medium-replay",
+    "walker2d-medium",
+    "hopper-random",
+]
+STUDY_TRAIN = {"eval_interval": 5000, "eval_episodes": 10}
+SCREEN_VARIANTS = [  # in order of priority: a screen stopped early has run the first ones
+    {"algo": "td3bc"},
+    {"algo": "eabc"},  # published: Table 3's p
+    {"algo": "eabc-auto", "critic_layer_norm": True},
+    {"algo": "eabc-auto"},
+    {"algo": "eabc", "critic_layer_norm": True},
+    {"algo": "eabc", "confidence_level": 1.0},
+    {"algo": "eabc-quantile"},
+    {"algo": "eabc", "independent_targets": True, "pessimism_beta": 2.0},
+    {"algo": "eabc-auto", "critic_layer_norm": True, "independent_targets": True},
+    {"algo": "eabc", "pessimism_beta": 2.0},
+]
+
+
 PRESETS: dict[str, dict[str, Any]] = {
     # Table 1: EABC against BC, TD3, TD3+BC, CQL, IQL and wPC on the 15 datasets, 5 seeds, 1M steps.
     "table1": {
@@ -70,6 +94,35 @@ PRESETS: dict[str, dict[str, Any]] = {
         "algos": ["eabc"],
         "seeds": [0, 1, 2, 3, 4],
         "grid": {"confidence_level": [0.0, 0.05, 0.25, 0.5, 0.75, 0.95, 1.0]},
+    },
+    # Issue 14's screen: every variant against published EABC and TD3+BC, 2 seeds, 50K steps.
+    "study-screen": {
+        "datasets": STUDY_DATASETS,
+        "variants": SCREEN_VARIANTS,
+        "seeds": [0, 1],
+        "steps": 50_000,
+        "train": STUDY_TRAIN,
+    },
+    # Issue 14's confirmation: TD3+BC, published EABC, EABC at p = 1 and the recommended variant.
+    "study": {
+        "datasets": STUDY_DATASETS,
+        "variants": [
+            {"algo": "td3bc"},
+            {"algo": "eabc"},
+            {"algo": "eabc", "confidence_level": 1.0},
+            {"algo": "eabc-robust"},
+        ],
+        "seeds": [0, 1, 2],
+        "steps": 100_000,
+        "train": STUDY_TRAIN,
+    },
+    # Whether the short protocol's ranking holds at the paper's length.
+    "study-1m": {
+        "datasets": ["halfcheetah-medium"],
+        "variants": [{"algo": "td3bc"}, {"algo": "eabc"}, {"algo": "eabc-robust"}],
+        "seeds": [0, 1, 2],
+        "steps": 1_000_000,
+        "train": STUDY_TRAIN,
     },
     # Figure 4: the pessimism operator at K = 10 with Table 3's p.
     "ablation-pess": {
@@ -158,13 +211,15 @@ def load_spec(path: str | os.PathLike) -> dict[str, Any]:
 
 def expand(spec: dict[str, Any]) -> list[RunSpec]:
     """Every run of a specification, in a stable order (see the module docstring for the keys)."""
-    known = {"datasets", "algos", "seeds", "steps", "grid", "train"}
+    known = {"datasets", "algos", "variants", "seeds", "steps", "grid", "train"}
     unknown = set(spec) - known
     if unknown:
         raise ValueError(f"unknown sweep key(s) {sorted(unknown)}; use {sorted(known)}")
-    for key in ("datasets", "algos"):
-        if not spec.get(key):
-            raise ValueError(f"the sweep needs at least one entry in {key!r}")
+    if not spec.get("datasets"):
+        raise ValueError("the sweep needs at least one entry in 'datasets'")
+    if not spec.get("algos") and not spec.get("variants"):
+        raise ValueError("the sweep needs at least one entry in 'algos' or 'variants'")
+    variants = [_variant(v) for v in spec.get("variants") or []]
     seeds = [int(s) for s in spec.get("seeds", [0])]
     train = dict(spec.get("train") or {})
     if "steps" in spec:
@@ -178,17 +233,41 @@ def expand(spec: dict[str, Any]) -> list[RunSpec]:
         for k, v in (spec.get("grid") or {}).items()
     }
     runs = []
-    for dataset, algo in itertools.product(spec["datasets"], spec["algos"]):
-        fields = {f.name for f in dataclasses.fields(get_algorithm(algo).preset)}
-        axes = {k: v for k, v in grid.items() if k in fields}
-        for values in itertools.product(*axes.values()):
-            overrides = _frozen(dict(zip(axes, values)))
-            for seed in seeds:
-                runs.append(RunSpec(dataset, algo, seed, overrides, _frozen(train)))
-    unused = set(grid) - {k for a in spec["algos"] for k in _fields(a)}
-    if unused:
+    datasets = spec["datasets"]
+    algos = spec.get("algos") or []
+    for dataset in datasets:
+        for algo in algos:
+            fields = {f.name for f in dataclasses.fields(get_algorithm(algo).preset)}
+            axes = {k: v for k, v in grid.items() if k in fields}
+            for values in itertools.product(*axes.values()):
+                overrides = _frozen(dict(zip(axes, values)))
+                for seed in seeds:
+                    runs.append(RunSpec(dataset, algo, seed, overrides, _frozen(train)))
+    # Named combinations, beside the grid's product; breadth first (seed, then variant, then
+    # dataset), so that a sweep stopped early has compared every variant on every dataset.
+    for seed, (algo, overrides), dataset in itertools.product(seeds, variants, datasets):
+        runs.append(RunSpec(dataset, algo, seed, overrides, _frozen(train)))
+    unused = set(grid) - {k for a in algos for k in _fields(a)}
+    if grid and unused:
         raise ValueError(f"no algorithm of the sweep has the setting(s) {sorted(unused)}")
     return runs
+
+
+def _variant(entry) -> tuple[str, tuple[tuple[str, Any], ...]]:
+    """A ``variants:`` entry, ``{algo: eabc, critic_layer_norm: true, ...}``: one algorithm with
+    fixed settings (checked against the algorithm's own)."""
+    if isinstance(entry, str):
+        entry = {"algo": entry}
+    if not isinstance(entry, dict) or "algo" not in entry:
+        raise ValueError(f"a sweep variant is a mapping with an 'algo' key, got {entry!r}")
+    settings = {k: v for k, v in entry.items() if k != "algo"}
+    unknown = set(settings) - _fields(entry["algo"])
+    if unknown:
+        raise ValueError(
+            f"variant {entry!r}: {entry['algo']} has no setting(s) {sorted(unknown)}; it has "
+            f"{sorted(_fields(entry['algo']))}"
+        )
+    return entry["algo"], _frozen(settings)
 
 
 def _fields(algo: str) -> set[str]:
