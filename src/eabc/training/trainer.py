@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from eabc.agents import Algorithm, get_algorithm
+from eabc.agents import Algorithm, get_algorithm, validation
 from eabc.agents.common import Batch
 from eabc.data import tasks
 from eabc.data.dataset import Dataset, DatasetError, Normalizer
@@ -108,7 +108,7 @@ def resolve_agent_config(
         overrides["confidence_level"] = p
     if steps is not None and "total_steps" in fields and "total_steps" not in overrides:
         overrides["total_steps"] = steps
-    return dataclasses.replace(algorithm.preset, **overrides)
+    return validation.validate(algorithm.preset, algo, overrides)
 
 
 @dataclasses.dataclass
@@ -128,6 +128,8 @@ class Run:
     and ``normalizer``: everything a checkpoint holds."""
     lock: RunLock | None = None
     """The run directory's writer lock, held from start/resume until training ends."""
+    diverged_step: int | None = None
+    """The step whose losses or Q values were NaN/inf; training stopped there."""
 
     @property
     def step(self) -> int:
@@ -144,6 +146,7 @@ def start(
     directory's writer lock until :func:`train` ends."""
     run_dir = Path(run_dir)
     _refuse_existing(run_dir)
+    config = _absolute_paths(config)
     dataset = dataset if dataset is not None else load_dataset(config.dataset, config.cache_dir)
     agent_config = resolve_agent_config(
         config.algo, dataset.name, agent_overrides or {}, config.steps
@@ -174,6 +177,19 @@ def start(
     return run
 
 
+def _absolute_paths(config: TrainConfig) -> TrainConfig:
+    """Dataset files and the cache directory as absolute paths, so that config.json works from
+    any directory (``eabc evaluate``, ``--resume`` and sweeps elsewhere)."""
+    path = Path(config.dataset).expanduser()
+    if not config.dataset.startswith("minari:") and (
+        path.suffix in (".hdf5", ".h5", ".npz") or path.exists()
+    ):
+        config = dataclasses.replace(config, dataset=str(path.resolve()))
+    if config.cache_dir is not None:
+        config = dataclasses.replace(config, cache_dir=str(Path(config.cache_dir).resolve()))
+    return config
+
+
 def _refuse_existing(run_dir: Path) -> None:
     if (run_dir / CONFIG).exists():
         raise FileExistsError(
@@ -182,20 +198,40 @@ def _refuse_existing(run_dir: Path) -> None:
         )
 
 
-def resume(run_dir: str | Path, dataset: Dataset | None = None, lock: bool = True) -> Run:
+def resume(
+    run_dir: str | Path,
+    dataset: Dataset | None = None,
+    lock: bool = True,
+    steps: int | None = None,
+) -> Run:
     """Reopen a run from its directory and latest checkpoint (from step 0 if it died before its
     first one). With ``lock`` (for training) the run holds the directory's writer lock until
-    :func:`train` ends; without it (to evaluate) nothing in the directory is written."""
+    :func:`train` ends; without it (to evaluate) nothing in the directory is written. ``steps``
+    extends the run to that many steps (config.json records the new length)."""
     run_dir = Path(run_dir)
     held = RunLock(run_dir).acquire() if lock else None
     try:
         run = _resume(run_dir, dataset, write=lock)
+        if steps is not None and steps != run.config.steps:
+            run = _extend(run, steps)
     except BaseException:
         if held is not None:
             held.release()
         raise
     run.lock = held
     return run
+
+
+def _extend(run: Run, steps: int) -> Run:
+    if steps < run.step:
+        raise ValueError(
+            f"{run.run_dir} has trained {run.step} steps, more than the {steps} asked; use "
+            "another run directory for a shorter run"
+        )
+    saved = read_config(run.run_dir)
+    saved["train"]["steps"] = steps
+    checkpoint.save_json(run.run_dir / CONFIG, saved)
+    return dataclasses.replace(run, config=dataclasses.replace(run.config, steps=steps))
 
 
 def _resume(run_dir: Path, dataset: Dataset | None, write: bool) -> Run:
@@ -230,7 +266,7 @@ def _resume(run_dir: Path, dataset: Dataset | None, write: bool) -> Run:
 def _agent_config_from_json(algorithm: Algorithm, fields: dict) -> Any:
     names = {f.name for f in dataclasses.fields(algorithm.preset)}
     fields = {k: tuple(v) if isinstance(v, list) else v for k, v in fields.items() if k in names}
-    return dataclasses.replace(algorithm.preset, **fields)
+    return validation.validate(algorithm.preset, algorithm.name, fields)
 
 
 def _build(run_dir, config, agent_config, dataset, state) -> Run:
@@ -427,18 +463,34 @@ def _train_seeds(runs: list[Run], progress: bool) -> list[dict[str, Any]]:
                     tqdm.write(divergence_warning(run, row["q_mean"], q_range), file=sys.stderr)
             bar.update(length)
             bar.set_postfix(_postfix(rows[0], first.state["evaluations"]), refresh=False)
+            if any(run.diverged_step is not None for run in runs):
+                break
     finally:
         bar.close()
         for logger in loggers:
             logger.close()
+    healthy = [run for run in runs if run.diverged_step is None]
+    rest = {}  # the other seeds of a group, when one of them stopped on NaN/inf
+    if len(healthy) < len(runs) and healthy and healthy[0].step < config.steps:
+        rest = dict(zip(map(id, healthy), _train_seeds(healthy, progress)))
     summaries = []
     for run, logger in zip(runs, loggers):
+        if id(run) in rest:
+            summaries.append(rest[id(run)])
+            continue
         summaries.append(summarize_run(run))
         if q_range is not None:
             summaries[-1]["q_range"] = list(q_range)
             summaries[-1]["q_out_of_range_step"] = first_divergence(logger.rows, q_range)
+        summaries[-1]["diverged_step"] = run.diverged_step
         checkpoint.save_json(run.run_dir / SUMMARY, summaries[-1])
     return summaries
+
+
+def non_finite(row: dict[str, float]) -> list[str]:
+    """The losses and Q statistics of a log row that are NaN or inf."""
+    watched = [k for k in row if k.endswith("_loss") or k in ("q_mean", "target_mean")]
+    return [k for k in watched if not math.isfinite(row[k])]
 
 
 def value_range(rewards: np.ndarray, discount: float | None) -> tuple[float, float] | None:
@@ -507,6 +559,17 @@ def _after_chunk(
     row |= summarize_metrics(jax.device_get(metrics))
     if q_range is not None and "q_mean" in row:
         row["q_out_of_range"] = float(not in_range(row["q_mean"], q_range))
+    bad = non_finite(row)
+    if bad:  # the weights are NaN/inf from here on: no evaluation, no checkpoint, stop
+        run.diverged_step = run.step
+        logger.log(row)
+        tqdm.write(
+            f"error: {run.run_dir.name} at step {run.step}: {', '.join(bad)} became NaN/inf, so "
+            "training stops here; summary.json records diverged_step and the last checkpoint is "
+            "from before (lower learning rates or more behaviour cloning may avoid it)",
+            file=sys.stderr,
+        )
+        return row
     if run.step % config.eval_interval == 0 or run.step == config.steps:
         result = evaluate(run)
         run.state["evaluations"][str(run.step)] = result
