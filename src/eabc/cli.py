@@ -285,6 +285,14 @@ def run_sweep(cmd: Sweep) -> None:
         f"{counts['pending']} pending; about {hours:.1f} CPU-core-hours left at this machine's "
         "measured speeds"
     )
+    found = sweep.problems(runs, root)
+    for why in found["broken"]:  # one unreadable run does not stop the others
+        print(f"skipping a broken run: {why}", file=sys.stderr)
+    if found["changed"] and not cmd.dry_run:
+        raise ValueError(
+            f"{len(found['changed'])} run(s) in {root} were trained with another spec, e.g. "
+            f"{found['changed'][0]}; use another --root, or move those run directories away"
+        )
     if cmd.dry_run:
         for r in rows:
             spec = r["run"]
@@ -326,6 +334,10 @@ def run_report(cmd: Report) -> None:
     from eabc.experiments import report, results  # noqa: PLC0415
 
     runs, evaluations = results.collect(cmd.root)
+    broken = runs[runs["status"] == "broken"]
+    for why in broken["config"]:
+        print(f"leaving out a broken run: {why}", file=sys.stderr)
+    runs = runs[runs["status"] != "broken"]
     if runs.empty:
         raise ValueError(f"no runs under {cmd.root}")
     out = Path(cmd.out) if cmd.out else Path(cmd.root) / "report"
@@ -346,6 +358,8 @@ def run_train(cmd: Train) -> dict:
     print(f"run directory: {run.run_dir}", file=sys.stderr)
     summary = trainer.train(run, progress=cmd.progress)
     print(json.dumps(summary, indent=2))
+    if summary.get("diverged_step") is not None:
+        raise RuntimeError(f"training stopped at step {summary['diverged_step']} on NaN/inf")
     return summary
 
 
@@ -453,6 +467,8 @@ def main(argv: list[str] | None = None) -> None:
             run_data(cmd)
     except (ValueError, FileNotFoundError, FileExistsError, RuntimeError) as error:
         sys.exit(f"error: {error}")
+    except OSError as error:  # e.g. a directory where a file should be, no permission
+        sys.exit(f"error: {error.filename or ''}: {error.strerror or error}; check that path")
 
 
 if __name__ == "__main__":

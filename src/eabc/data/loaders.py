@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import os
 import warnings
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -44,9 +45,17 @@ def load_file(path: str | os.PathLike) -> Dataset:
     path = Path(path).expanduser()
     if not path.exists():
         raise DatasetError(f"dataset file {path} does not exist; check the path")
+    if path.is_dir():
+        raise DatasetError(f"{path} is a directory, not a dataset file; give the file's path")
     if path.suffix == ".npz":
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {key: data[key] for key in data.files}
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                arrays = {key: data[key] for key in data.files}
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as error:
+            raise DatasetError(
+                f"{path}: not a readable .npz archive ({type(error).__name__}: {error}); the file "
+                "is truncated or corrupt: make or copy it again"
+            ) from None
         attrs = {k: arrays.pop(k).item() for k in list(arrays) if arrays[k].ndim == 0}
     elif path.suffix in (".hdf5", ".h5"):
         arrays, attrs = _read_hdf5(path)
@@ -61,10 +70,19 @@ def _read_hdf5(path: Path) -> tuple[dict[str, np.ndarray], dict]:
     try:
         with h5py.File(path, "r") as f:
             keys = [k for k in (*REQUIRED, "timeouts", "next_observations") if k in f]
+            for key in keys:
+                if not isinstance(f[key], h5py.Dataset):
+                    raise DatasetError(
+                        f"{path}: {key!r} is an HDF5 {type(f[key]).__name__.lower()}, not an "
+                        "array; a dataset needs arrays at the top level (D4RL's layout)"
+                    )
             arrays = {k: f[k][()] for k in keys}
             attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
-    except OSError as error:
-        raise DatasetError(f"{path}: not a readable HDF5 file ({error})") from error
+    except (OSError, KeyError, RuntimeError) as error:
+        raise DatasetError(
+            f"{path}: not a readable HDF5 file ({error}); it is truncated or corrupt: make or "
+            "copy it again"
+        ) from None
     return arrays, attrs
 
 
@@ -134,7 +152,12 @@ def _minari_has(dataset_id: str) -> bool:
 
 def load_minari(dataset_id: str) -> Dataset:
     """A Minari dataset from the local Minari path (never downloads)."""
-    import minari  # noqa: PLC0415
+    try:
+        import minari  # noqa: PLC0415
+    except ImportError:
+        raise DatasetError(
+            f"minari:{dataset_id} needs the minari package: pip install 'eabc[minari]'"
+        ) from None
 
     if dataset_id not in minari.list_local_datasets():
         raise DatasetError(

@@ -4,11 +4,14 @@
 
 - ``runs``: one row per run directory: ``run_id, run_dir, dataset, env, kind, algo, seed,
   variant`` and the algorithm settings (``num_critics, confidence_level, pessimism``), then
-  ``status`` (done/partial), ``steps``, ``steps_target``, ``wall_time_s``, ``steps_per_s``,
+  ``status`` (done, partial, diverged: stopped on NaN/inf, or broken: its config.json or log.csv
+  cannot be read, with why in ``config``), ``steps``, ``steps_target``, ``wall_time_s``, ``steps_per_s``,
   ``final_score`` and ``final_return`` (means over the last 10 evaluations),
   ``q_out_of_range_step`` (the first logged step where the critics' mean Q left the range the
-  rewards allow, a sign of divergence; empty if it never did or the log predates the check) and
-  ``config`` (JSON);
+  rewards allow, a sign of divergence; empty if it never did or the log predates the check),
+  ``diverged_step`` (where losses or Q became NaN/inf and training stopped), ``q_mean_max`` (the
+  largest logged mean Q), the last log row's ``q_mean, q_ensemble_std, policy_q_std, bc_fraction,
+  auto_p`` (as ``*_last``) and ``config`` (JSON);
 - ``evaluations``: ``run_id, step, score, score_std, return_mean, return_std``.
 
 The run directories are the source of truth (``config.json``, ``log.csv``, ``summary.json``); the
@@ -34,6 +37,8 @@ from eabc.training.trainer import FINAL_EVALUATIONS, SUMMARY
 
 DATABASE = "results.sqlite"
 SETTINGS = ("num_critics", "confidence_level", "pessimism")
+DIAGNOSTICS = ("q_mean", "q_ensemble_std", "policy_q_std", "bc_fraction", "auto_p")
+"""Log columns kept from a run's last row (``*_last``): how its critics and BC term ended."""
 
 
 def run_dirs(root: Path) -> list[Path]:
@@ -41,28 +46,49 @@ def run_dirs(root: Path) -> list[Path]:
     root = Path(root)
     if (root / CONFIG).exists():
         return [root]
-    return sorted(p.parent for p in root.rglob(CONFIG) if "train" in _read_json(p))
+    # A config.json that cannot be read is a broken run, listed as such rather than dropped.
+    return sorted(p.parent for p in root.rglob(CONFIG) if "train" in _read_json(p, {"train": 1}))
 
 
-def _read_json(path: Path) -> dict:
+def _read_json(path: Path, unreadable: dict | None = None) -> dict:
+    """The JSON object in ``path``; ``unreadable`` (default {}) if it is missing or corrupt."""
     try:
-        return json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError):
-        return {}
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return {} if unreadable is None or not path.exists() else unreadable
+    return data if isinstance(data, dict) else {}
+
+
+def _broken_row(run_dir: Path, run_id: str, why: str) -> dict:
+    return {**dict.fromkeys(_RUN_COLUMNS), "run_id": run_id, "run_dir": str(run_dir),
+            "status": "broken", "config": why}  # fmt: skip
 
 
 def read_run(run_dir: Path, root: Path | None = None) -> tuple[dict, list[dict]]:
-    """One run's row and its evaluations, from its directory."""
+    """One run's row and its evaluations, from its directory; status ``broken`` (and why, in
+    ``config``) when its config.json or log.csv cannot be read."""
+    run_id = run_dir.name if root is None else str(run_dir.relative_to(root))
     config = _read_json(run_dir / CONFIG)
+    if not isinstance(config.get("train"), dict) or "algo" not in config["train"]:
+        return _broken_row(run_dir, run_id, f"{run_dir / CONFIG} cannot be read"), []
+    try:
+        return _read_run(run_dir, run_id, config)
+    except (OSError, ValueError, KeyError, TypeError, csv.Error) as error:
+        return _broken_row(run_dir, run_id, f"{run_dir}: {type(error).__name__}: {error}"), []
+
+
+def _read_run(run_dir: Path, run_id: str, config: dict) -> tuple[dict, list[dict]]:
     train, agent = config["train"], config.get("agent", {})
     dataset = config.get("dataset", {}).get("name") or train["dataset"]
     task = tasks.parse_task(dataset)
     evaluations, last_row, out_of_range = [], {}, math.nan
+    q_max = math.nan  # the largest mean Q any logged chunk reached
     log = run_dir / LOG
     if log.exists():
         with open(log, newline="") as f:
             for row in csv.DictReader(f):
                 last_row = row
+                q_max = _max(q_max, _num(row.get("q_mean")))
                 if _num(row.get("q_out_of_range")) == 1.0 and math.isnan(out_of_range):
                     out_of_range = int(float(row["step"]))
                 # An evaluation row has a return; "nan" cells (which resumes of older versions
@@ -81,7 +107,6 @@ def read_run(run_dir: Path, root: Path | None = None) -> tuple[dict, list[dict]]
     steps = int(float(last_row["step"])) if last_row else 0
     wall = _num(last_row.get("wall_time")) if last_row else math.nan
     last = evaluations[-FINAL_EVALUATIONS:]
-    run_id = run_dir.name if root is None else str(run_dir.relative_to(root))
     spec = _read_json(run_dir / "sweep.json")  # written by eabc.experiments.sweep
     row = {
         "run_id": run_id,
@@ -93,7 +118,7 @@ def read_run(run_dir: Path, root: Path | None = None) -> tuple[dict, list[dict]]
         "seed": int(train["seed"]),
         "variant": spec.get("variant", ""),
         **{k: agent.get(k) for k in SETTINGS},
-        "status": "done" if summary and summary.get("steps", 0) >= train["steps"] else "partial",
+        "status": _status(summary, train),
         "steps": steps,
         "steps_target": int(train["steps"]),
         "wall_time_s": wall,
@@ -101,9 +126,22 @@ def read_run(run_dir: Path, root: Path | None = None) -> tuple[dict, list[dict]]
         "final_score": _mean([e["score"] for e in last]),
         "final_return": _mean([e["return_mean"] for e in last]),
         "q_out_of_range_step": out_of_range,
+        "diverged_step": summary.get("diverged_step", math.nan),
+        "q_mean_max": q_max,
+        **{f"{k}_last": _num(last_row.get(k)) for k in DIAGNOSTICS},
         "config": json.dumps(config),
     }
     return row, [{"run_id": run_id, **e} for e in evaluations]
+
+
+def _status(summary: dict, train: dict) -> str:
+    if summary.get("diverged_step") is not None:
+        return "diverged"  # stopped on NaN/inf losses or Q values
+    return "done" if summary and summary.get("steps", 0) >= train["steps"] else "partial"
+
+
+def _max(a: float, b: float) -> float:
+    return b if math.isnan(a) else a if math.isnan(b) else max(a, b)
 
 
 def _num(text) -> float:
@@ -144,7 +182,8 @@ def collect(root: str | Path, write: bool = True) -> tuple[pd.DataFrame, pd.Data
 _RUN_COLUMNS = [
     "run_id", "run_dir", "dataset", "env", "kind", "algo", "seed", "variant", *SETTINGS,
     "status", "steps", "steps_target", "wall_time_s", "steps_per_s", "final_score",
-    "final_return", "q_out_of_range_step", "config",
+    "final_return", "q_out_of_range_step", "diverged_step", "q_mean_max",
+    *(f"{k}_last" for k in DIAGNOSTICS), "config",
 ]  # fmt: skip
 _EVAL_COLUMNS = ["run_id", "step", "score", "score_std", "return_mean", "return_std"]
 

@@ -21,6 +21,7 @@ together, vectorised with ``vmap`` (fastest on a GPU), or as one single-threaded
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import itertools
 import json
 import os
@@ -154,7 +155,10 @@ class RunSpec:
     @property
     def group_id(self) -> str:
         slug = "_".join(f"{SHORT.get(k, k)}{_text(v)}" for k, v in self.overrides)
-        name = Path(self.dataset).stem if os.sep in self.dataset else self.dataset
+        name = self.dataset
+        if is_path(name):  # pendA.npz in two folders are two datasets: a hash of the full path
+            full = str(Path(name).expanduser().resolve())
+            name = f"{Path(name).stem}-{hashlib.sha256(full.encode()).hexdigest()[:6]}"
         return "__".join(filter(None, [name.replace(":", "-").replace("/", "-"), self.algo, slug]))
 
     @property
@@ -182,6 +186,28 @@ class RunSpec:
             _frozen(data.get("overrides", {})),
             _frozen(data.get("train", {})),
         )
+
+
+def is_path(dataset: str) -> bool:
+    """Whether a --dataset value names a file (rather than a built-in name or a Minari id)."""
+    if dataset.startswith("minari:"):
+        return False
+    path = Path(dataset).expanduser()
+    return path.suffix in (".hdf5", ".h5", ".npz") or path.exists()
+
+
+def differences(stored: RunSpec, run: RunSpec) -> list[str]:
+    """What makes ``run`` another run than ``stored`` (steps aside: more steps extend a run)."""
+    out = [
+        f"{name} {getattr(stored, name)!r} -> {getattr(run, name)!r}"
+        for name in ("dataset", "algo", "seed", "overrides")
+        if getattr(stored, name) != getattr(run, name)
+    ]
+    old, new = dict(stored.train), dict(run.train)
+    for key in sorted((set(old) | set(new)) - {"steps"}):
+        if old.get(key) != new.get(key):
+            out.append(f"{key} {old.get(key)!r} -> {new.get(key)!r}")
+    return out
 
 
 def _freeze(value):
@@ -233,7 +259,7 @@ def expand(spec: dict[str, Any]) -> list[RunSpec]:
         for k, v in (spec.get("grid") or {}).items()
     }
     runs = []
-    datasets = spec["datasets"]
+    datasets = [str(Path(d).expanduser().resolve()) if is_path(d) else d for d in spec["datasets"]]
     algos = spec.get("algos") or []
     for dataset in datasets:
         for algo in algos:
@@ -283,19 +309,58 @@ def groups(runs: list[RunSpec]) -> list[list[RunSpec]]:
 
 
 def status(run: RunSpec, root: Path) -> tuple[str, int]:
-    """``done``, ``partial`` (has a checkpoint) or ``pending``, and the steps done so far."""
-    run_dir = root / RUNS / run.run_id
-    summary = run_dir / SUMMARY
-    target = run.train_config().steps
-    if summary.exists():
-        steps = json.loads(summary.read_text()).get("steps", 0)
-        if steps >= target:
-            return "done", steps
-    if (run_dir / "checkpoint.msgpack").exists():
-        from eabc.training import checkpoint  # noqa: PLC0415
+    """The state of a run and the steps done so far: ``done`` (also when it stopped on NaN/inf),
+    ``partial`` (has a checkpoint), ``pending``, ``changed`` (its directory holds a run of another
+    spec, or of more steps than asked) or ``broken`` (a file of it cannot be read)."""
+    return _status(run, root)[:2]
 
-        return "partial", int(checkpoint.load_raw(run_dir)["agent"]["step"])
-    return "pending", 0
+
+def _status(run: RunSpec, root: Path) -> tuple[str, int, str]:
+    """:func:`status` and why, in words (for ``changed`` and ``broken``)."""
+    from eabc.training import checkpoint  # noqa: PLC0415
+
+    run_dir = root / RUNS / run.run_id
+    target = run.train_config().steps
+    if (run_dir / SPEC).exists():
+        try:
+            stored = RunSpec.from_json(json.loads((run_dir / SPEC).read_text()))
+        except (OSError, ValueError, KeyError, TypeError) as error:
+            return "broken", 0, f"{run_dir / SPEC} cannot be read ({type(error).__name__})"
+        changed = differences(stored, run)
+        if changed:
+            return "changed", 0, f"{run_dir} was trained with {'; '.join(changed)}"
+    summary = _read_json(run_dir / SUMMARY)  # an unreadable summary is rewritten by the run
+    steps = summary.get("steps", 0)
+    if summary.get("diverged_step") is not None:
+        return "done", steps, ""
+    if steps > target:
+        return "changed", steps, f"{run_dir} has trained {steps} steps, the spec asks {target}"
+    if summary and steps == target:
+        return "done", steps, ""
+    if (run_dir / checkpoint.CHECKPOINT).exists():
+        try:
+            return "partial", int(checkpoint.load_raw(run_dir)["agent"]["step"]), ""
+        except (ValueError, KeyError, TypeError) as error:
+            return "broken", 0, str(error)
+    return "pending", 0, ""
+
+
+def _read_json(path: Path) -> dict:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
+def problems(runs: list[RunSpec], root: Path) -> dict[str, list[str]]:
+    """``changed`` and ``broken`` runs of a sweep, each with why."""
+    out: dict[str, list[str]] = {"changed": [], "broken": []}
+    for run in runs:
+        state, _, why = _status(run, root)
+        if state in out:
+            out[state].append(why)
+    return out
 
 
 # Measured steps/s at batch 256 on hopper's shapes; the estimate scales the EABC family by K.
@@ -369,7 +434,7 @@ def default_layout() -> str:
 
 def jobs(runs: list[RunSpec], root: Path, layout: str) -> list[list[RunSpec]]:
     """The unfinished runs as jobs: a seed group per job (vmap) or one run per job."""
-    todo = [r for r in runs if status(r, root)[0] != "done"]
+    todo = [r for r in runs if status(r, root)[0] in ("partial", "pending")]
     if layout == "vmap":
         return groups(todo)
     return [[r] for r in todo]
@@ -388,31 +453,23 @@ def execute(job: list[dict], root: str) -> list[dict]:
     runs = []
     for spec in specs:
         run_dir = root_path / RUNS / spec.run_id
-        if (run_dir / "checkpoint.msgpack").exists():
-            runs.append(trainer.resume(run_dir, dataset))
+        state, _, why = _status(spec, root_path)
+        if state in ("changed", "broken"):
+            raise ValueError(f"{why}; move that run directory away or use another sweep root")
+        if (run_dir / checkpoint.CONFIG).exists():  # from step 0 if it has no checkpoint yet
+            runs.append(trainer.resume(run_dir, dataset, steps=spec.train_config().steps))
         else:
-            if (run_dir / "config.json").exists():  # killed before its first checkpoint
-                for child in run_dir.iterdir():
-                    _remove(child)
             runs.append(trainer.start(spec.train_config(), run_dir, dict(spec.overrides), dataset))
-            checkpoint.save_json(
-                run_dir / SPEC, {"run_id": spec.run_id, "variant": spec.variant, **spec.to_json()}
-            )
+        identity = {"fingerprint": dataset.fingerprint(), **spec.to_json()}  # steps: the latest
+        checkpoint.save_json(
+            run_dir / SPEC, {"run_id": spec.run_id, "variant": spec.variant, **identity}
+        )
     summaries = (
         trainer.train_seeds(runs, progress=False)
         if len(runs) > 1
         else [trainer.train(runs[0], progress=False)]
     )
     return summaries
-
-
-def _remove(path: Path) -> None:
-    if path.is_dir():
-        for child in path.iterdir():
-            _remove(child)
-        path.rmdir()
-    else:
-        path.unlink()
 
 
 SINGLE_THREAD = {
