@@ -33,8 +33,10 @@ import time
 from pathlib import Path
 from typing import Any
 
+import pydantic
+
 from eabc import compile_cache
-from eabc.agents import get_algorithm
+from eabc.agents import get_algorithm, validation
 from eabc.data import generate
 from eabc.training.trainer import SUMMARY, TrainConfig
 
@@ -253,7 +255,13 @@ def expand(spec: dict[str, Any]) -> list[RunSpec]:
     bad = set(train) - TRAIN_FIELDS
     if bad:
         raise ValueError(f"unknown train setting(s) {sorted(bad)}; use {sorted(TRAIN_FIELDS)}")
-    TrainConfig(**train)  # validate early, before any run starts
+    try:  # validate (and convert: "1000" -> 1000) early, before any run starts
+        checked = pydantic.TypeAdapter(TrainConfig).validate_python(train)
+    except pydantic.ValidationError as error:
+        first = error.errors()[0]
+        where = ".".join(map(str, first["loc"])) or "train"
+        raise ValueError(f"bad train setting {where}: {first['msg']}") from None
+    train = {k: getattr(checked, k) for k in train}
     grid = {
         k: list(v) if isinstance(v, list | tuple) else [v]
         for k, v in (spec.get("grid") or {}).items()
@@ -267,6 +275,7 @@ def expand(spec: dict[str, Any]) -> list[RunSpec]:
             axes = {k: v for k, v in grid.items() if k in fields}
             for values in itertools.product(*axes.values()):
                 overrides = _frozen(dict(zip(axes, values)))
+                validation.validate(get_algorithm(algo).preset, algo, dict(overrides))
                 for seed in seeds:
                     runs.append(RunSpec(dataset, algo, seed, overrides, _frozen(train)))
     # Named combinations, beside the grid's product; breadth first (seed, then variant, then
