@@ -248,6 +248,9 @@ def test_write_report_writes_every_file_and_the_table_matches_the_input(results,
         "runtime.png",
         "profiles.png",
         "ablation_num_critics.png",
+        "stability.md",
+        "runs.csv",
+        "evaluations.csv",
         "report.md",
     }
     assert set(paths) == expected == {p.name for p in out.iterdir()}

@@ -80,3 +80,39 @@ def test_study_presets_follow_the_issue_protocol():
     long = sweep.expand(sweep.PRESETS["study-1m"])
     assert {r.dataset for r in long} == {"halfcheetah-medium"}
     assert long[0].train_config().steps == 1_000_000
+
+
+def test_stability_table_says_where_the_critics_fail():
+    import math
+
+    import pandas as pd
+
+    from eabc.experiments import report
+
+    nan = math.nan
+    runs = pd.DataFrame(
+        {
+            "run_id": ["a", "b", "c", "d"],
+            "dataset": ["hopper-medium"] * 4,
+            "algo": ["eabc", "eabc", "td3bc", "eabc"],
+            "variant": ["", "", "", "critic_layer_norm=True"],
+            "seed": [0, 1, 0, 0],
+            "final_score": [5.0, 9.0, 48.0, 50.0],
+            "q_out_of_range_step": [11_000, 17_000, nan, nan],
+            "q_mean_max": [2000.0, 4000.0, 150.0, 120.0],
+            "q_mean_last": [1000.0, -500.0, 100.0, 100.0],
+            "policy_q_std_last": [10.0, 10.0, nan, 5.0],
+            "bc_fraction_last": [0.25, 0.25, 1.0, 0.5],
+        }
+    )
+    table = report.stability_table(runs)
+    assert list(table["label"]) == ["td3bc", "eabc", "eabc critic_layer_norm=True"]
+    eabc = table[table["label"] == "eabc"].iloc[0]
+    assert eabc["runs"] == 2 and eabc["out_of_range"] == 2
+    assert eabc["first_out_of_range_step"] == 11_000
+    assert eabc["q_mean_max"] == 3000.0
+    assert math.isclose(eabc["policy_spread"], (0.01 + 0.02) / 2)
+    assert math.isclose(eabc["score"], 7.0) and math.isclose(eabc["score_std"], 2**0.5 * 2)
+    text = report.stability_to_markdown(table)
+    assert "| hopper-medium | eabc | 2 | 7.0 ± 2.8 | 2/2 | 11,000 | 3,000 | 1.50% | 0.25 |" in text
+    assert "| hopper-medium | td3bc | 1 | 48.0 | 0/1 |  | 150 |  | 1.00 |" in text

@@ -30,8 +30,12 @@ from eabc.experiments.stats import STATISTICS, _aggregates_batched, stratified_b
 
 ENV_ORDER = ("hopper", "halfcheetah", "walker2d")
 KIND_ORDER = ("random", "medium", "medium-replay", "medium-expert", "expert")
-ALGO_ORDER = ("bc", "td3", "td3bc", "cql", "iql", "wpc", "sac-n", "edac", "edac-10", "eabc")
-"""Table 1's column order, then Table 6's; unknown algorithms go just before EABC."""
+ALGO_ORDER = (
+    "bc", "td3", "td3bc", "cql", "iql", "wpc", "sac-n", "edac", "edac-10", "eabc",
+    "eabc-quantile", "eabc-auto", "eabc-robust",
+)  # fmt: skip
+"""Table 1's column order, then Table 6's, then EABC's variants; unknown algorithms go just
+before EABC."""
 ABLATION_PARAMETERS = ("num_critics", "confidence_level", "pessimism")
 PESSIMISM_ORDER = ("mean-std", "min", "min2")
 PAPER_DEFAULTS = {"num_critics": 10.0, "pessimism": "mean-std"}
@@ -298,6 +302,70 @@ def aggregate_to_markdown(table: pd.DataFrame, alpha: float = 0.05) -> str:
 # The report
 
 
+def stability_table(runs: pd.DataFrame) -> pd.DataFrame:
+    """Where each algorithm's critics fail, dataset by dataset (issue 14's diagnostics).
+
+    One row per dataset and label: ``runs``; ``score`` (mean of the final scores) and
+    ``score_std``; ``out_of_range`` (runs whose mean Q left the value range the rewards allow);
+    ``first_out_of_range_step`` (the earliest over its runs); ``q_mean_max`` (median over runs of
+    the largest logged mean Q); ``policy_spread`` (median of ``policy_q_std / |q_mean|`` at the
+    last log row: how much of the value ``mean - std`` subtracts at the policy's actions);
+    ``bc_fraction`` (median at the last row: the share of samples whose BC term was on).
+    """
+    runs = _labelled(runs)
+    rows = []
+    for (dataset, label), group in runs.groupby(["dataset", "label"], sort=False):
+        numeric = lambda c, g=group: pd.to_numeric(g[c], errors="coerce") if c in g else None  # noqa: E731
+        out = numeric("q_out_of_range_step")
+        q_last = numeric("q_mean_last")
+        spread = numeric("policy_q_std_last")
+        scores = numeric("final_score").dropna()
+        rows.append(
+            {
+                "dataset": dataset,
+                "label": label,
+                "runs": len(group),
+                "score": scores.mean() if len(scores) else math.nan,
+                "score_std": scores.std(ddof=1) if len(scores) > 1 else math.nan,
+                "out_of_range": int(out.notna().sum()) if out is not None else 0,
+                "first_out_of_range_step": out.min() if out is not None else math.nan,
+                "q_mean_max": numeric("q_mean_max").median() if "q_mean_max" in group else math.nan,
+                "policy_spread": (spread / q_last.abs()).median()
+                if spread is not None
+                else math.nan,
+                "bc_fraction": numeric("bc_fraction_last").median()
+                if "bc_fraction_last" in group
+                else math.nan,
+            }
+        )
+    table = pd.DataFrame(rows)
+    order = {label: i for i, label in enumerate(_labels(runs))}
+    table["_d"] = [dataset_sort_key(d) for d in table["dataset"]]
+    table["_l"] = [order[label] for label in table["label"]]
+    return table.sort_values(["_d", "_l"]).drop(columns=["_d", "_l"]).reset_index(drop=True)
+
+
+def stability_to_markdown(table: pd.DataFrame) -> str:
+    def fmt(value, pattern):
+        return "" if _missing(value) or not np.isfinite(value) else pattern.format(value)
+
+    lines = [
+        "| Dataset | Algorithm | runs | score | out of range | first step out | max mean Q | "
+        "spread at pi | BC fraction |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in table.itertuples(index=False):
+        score = fmt(r.score, "{:.1f}") + (
+            f" ± {r.score_std:.1f}" if np.isfinite(r.score_std) else ""
+        )
+        lines.append(
+            f"| {r.dataset} | {r.label} | {r.runs} | {score} | {r.out_of_range}/{r.runs} | "
+            f"{fmt(r.first_out_of_range_step, '{:,.0f}')} | {fmt(r.q_mean_max, '{:,.0f}')} | "
+            f"{fmt(r.policy_spread, '{:.2%}')} | {fmt(r.bc_fraction, '{:.2f}')} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
 def _diverged_runs(runs: pd.DataFrame) -> list[str]:
     """``run (step N)`` for each run with a ``q_out_of_range_step``."""
     if "q_out_of_range_step" not in runs:
@@ -327,6 +395,10 @@ def write_report(
 
     table = score_table(runs)
     write("table.md", to_markdown(table))
+    stability = stability_to_markdown(stability_table(runs))
+    write("stability.md", stability)
+    write("runs.csv", runs.drop(columns=["config"], errors="ignore").to_csv(index=False))
+    write("evaluations.csv", evaluations.to_csv(index=False))
     write("table.html", to_html(table) + "\n")
     write("table.tex", to_latex(table))
     aggregate = aggregate_to_markdown(aggregate_table(runs))
@@ -365,6 +437,14 @@ def write_report(
         "seeds; best mean per row in bold; the Average row averages the per-dataset means and "
         "stds. Also as [HTML](table.html) and [LaTeX](table.tex).\n",
         to_markdown(table),
+        "## Stability: where the critics fail\n",
+        "Per dataset and algorithm: runs whose mean Q left the range the rewards allow, the "
+        "first such step, the largest mean Q (median over runs), the ensemble's spread at the "
+        "policy's actions relative to |mean Q| and the share of samples with the BC term on "
+        "(both at the last log row). [stability.md](stability.md); the results as CSV: "
+        "[runs.csv](runs.csv), "
+        "[evaluations.csv](evaluations.csv).\n",
+        stability,
         "## Aggregate statistics\n",
         aggregate,
         "![Performance profiles](profiles.png)\n",
