@@ -78,8 +78,11 @@ def test_sweep_expansion_ids_and_validation():
         )
     with pytest.raises(ValueError, match="unknown sweep key"):
         sweep.expand({"datasets": ["x"], "algos": ["bc"], "seedz": [1]})
-    for preset in sweep.PRESETS.values():
-        assert len(sweep.expand(preset)) >= 15 * 5
+    for name, preset in sweep.PRESETS.items():
+        if not name.startswith("study"):  # the paper's grids: 15 datasets x 5 seeds at least
+            assert len(sweep.expand(preset)) >= 15 * 5, name
+        else:  # issue 14's study (tests/test_study.py): 5 or 1 datasets, 2-3 seeds
+            assert len(sweep.expand(preset)) >= 3 * 3, name
 
 
 @pytest.fixture
