@@ -8,7 +8,7 @@ from __future__ import annotations
 import dataclasses
 from types import ModuleType
 
-from eabc.agents import bc, cql, eabc, iql, sac, wpc
+from eabc.agents import bc, bear, cql, eabc, iql, mopo, morel, sac, uwac, wpc
 
 
 @dataclasses.dataclass(frozen=True)
@@ -32,6 +32,10 @@ ALGORITHMS: dict[str, Algorithm] = {
     "wpc": Algorithm("wpc", wpc, wpc.PRESETS["wpc"]),
     "iql": Algorithm("iql", iql, iql.PRESETS["iql"]),
     **{name: Algorithm(name, cql, preset) for name, preset in cql.PRESETS.items()},
+    "bear": Algorithm("bear", bear, bear.PRESETS["bear"]),
+    "uwac": Algorithm("uwac", uwac, uwac.PRESETS["uwac"]),
+    "mopo": Algorithm("mopo", mopo, mopo.PRESETS["mopo"]),
+    "morel": Algorithm("morel", morel, morel.PRESETS["morel"]),
 }
 
 

@@ -1,0 +1,218 @@
+"""UWAC (Wu, Zhai, Srivastava, Susskind, Zhang, Salakhutdinov & Goh, 2021): BEAR whose critics use
+Monte-Carlo dropout, and whose uncertainty down-weights the Bellman error and the actor's objective.
+
+The update is :func:`eabc.agents.bear.step` with :class:`DropoutCritics`: following the authors'
+code (apple/ml-uwac, ``rlkit/torch/sac/uwac_dropout.py`` and ``examples/UWAC_hdf5_d4rl.py``),
+
+- every hidden ReLU of a critic is followed by dropout with rate p, in training and target passes
+  alike, and every layer's weight is divided by its spectral norm (one power iteration per step
+  from a stored vector, as PyTorch's ``spectral_norm``);
+- the Bellman loss regresses one dropout pass ``Q_i(s, a)`` on the target
+  ``y = r + gamma (1 - d) max_j [0.75 min_i Qbar_i + 0.25 max_i Qbar_i](s', a'_j)``, where ``Qbar_i``
+  is the mean over T dropout passes of target critic i; the squared error is
+  ``(w (Q_i - y))^2`` with ``w = clip(exp(-beta Var), clip_bottom, clip_top)`` and
+  ``Var = max_j sum_i Var_T Q_targ_i(s', a'_j)`` (the authors' ``use_exp_weight=True``);
+- the actor maximises ``w' min_i Qbar_i(s, a~)`` with ``w'`` the same weight of the online
+  critics' dropout variance at the policy's action (``var_Pi=True``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+
+from eabc import networks
+from eabc.agents import bear
+from eabc.agents.bear import BEARState
+from eabc.agents.common import Batch
+
+GAUSSIAN_ACTOR = True
+"""The actor outputs a tanh-Gaussian; its deterministic action is ``tanh(mean)``."""
+
+
+@dataclasses.dataclass(frozen=True)
+class UWACConfig(bear.BEARConfig):
+    """UWAC's settings: the defaults of the authors' ``examples/UWAC_hdf5_d4rl.py`` (its argument
+    defaults and trainer arguments) and ``UWAC_DropoutTrainer``, which build on rlkit's BEAR."""
+
+    dropout_rate: float = 0.1
+    """p, dropout after every hidden layer of the critics (``--drop_rate``)."""
+    num_dropout_samples: int = 100
+    """T, dropout passes for the mean and variance of a Q estimate (``multiple(num_samples=100)``)."""
+    beta: float = 0.5
+    """beta of the weight ``exp(-beta Var)`` (``--beta``)."""
+    clip_bottom: float = 0.0
+    """Lower clip of the weight (``--clip_bottom``)."""
+    clip_top: float = 1.0
+    """Upper clip of the weight (``--clip_top``)."""
+    exponential_weight: bool = True
+    """Weight ``exp(-beta Var)`` (``--use_exp_weight``); False: the paper's ``beta / Var``."""
+    weight_actor: bool = True
+    """Down-weight the actor's objective too (``--var_Pi``)."""
+    spectral_norm: bool = True
+    """Spectral normalisation of every critic layer (``--SN``)."""
+    # rlkit-BEAR settings of the UWAC script, where they differ from BEAR's own code:
+    kernel: str = "gaussian"
+    """MMD kernel (``--kernel_type``)."""
+    mmd_sigma: float = 20.0
+    """Kernel bandwidth (``--mmd_sigma``)."""
+    num_samples_match: int = 4
+    """Actor and VAE samples per state for the MMD (``num_samples_mmd_match=4``)."""
+    mmd_threshold: float = 0.07
+    """epsilon (``--target_mmd_thresh``)."""
+    init_log_lagrange: float | None = 0.0
+    """Initial log(alpha) (rlkit: ``ptu.zeros(1)``)."""
+    warmup_steps: int = 40_000
+    """Steps of MMD-only actor training (``_n_train_steps_total >= 40000``)."""
+    target_actor: bool = False
+    """a' from the current policy (rlkit)."""
+    actor_q_all_samples: bool = False
+    """The actor's Q at its first sample (rlkit)."""
+    actor_noise_clip: float | None = None
+    """Unclipped actor noise (rlkit's TanhGaussianPolicy)."""
+    actor_lr: float = 1e-4
+    """``--policy_lr``."""
+    critic_lr: float = 3e-4
+    """``--qf_lr``."""
+    vae_lr: float = 3e-4
+    """The trainer's VAE optimiser."""
+    hidden_dims: tuple[int, ...] = (256, 256)
+    """``layer_size=256``, two hidden layers."""
+
+    def __post_init__(self):
+        super().__post_init__()
+        if not 0.0 <= self.dropout_rate < 1.0:
+            raise ValueError(f"dropout_rate must lie in [0, 1), got {self.dropout_rate}")
+        if self.num_dropout_samples < 2:
+            raise ValueError(
+                f"num_dropout_samples must be at least 2 (a variance), got {self.num_dropout_samples}"
+            )
+
+
+PRESETS: dict[str, UWACConfig] = {"uwac": UWACConfig()}
+
+
+@flax.struct.dataclass
+class UWACState(BEARState):
+    spectral_u: networks.Params = None
+    """Power-iteration vectors of the critics' layers (``u{i}: [K, out]``)."""
+    spectral_u_target: networks.Params = None
+    """The target critics' own vectors (PyTorch keeps them as buffers, outside the Polyak copy)."""
+
+
+def init(key: jax.Array, obs_dim: int, act_dim: int, config: UWACConfig) -> UWACState:
+    net_key, u_key, u_target_key = jax.random.split(key, 3)
+    base = bear.init(net_key, obs_dim, act_dim, config)
+    fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(base)}
+    return UWACState(
+        **fields,
+        spectral_u=init_spectral_u(u_key, base.critic),
+        spectral_u_target=init_spectral_u(u_target_key, base.critic),
+    )
+
+
+def _normalise(x: jax.Array) -> jax.Array:
+    return x / (jnp.linalg.norm(x, axis=-1, keepdims=True) + 1e-12)
+
+
+def init_spectral_u(key: jax.Array, critic: networks.Params) -> networks.Params:
+    n = networks.num_layers(critic)
+    keys = jax.random.split(key, n)
+    return {
+        f"u{i}": _normalise(jax.random.normal(keys[i], critic[f"b{i}"].shape)) for i in range(n)
+    }
+
+
+def power_iteration(critic, u) -> tuple[networks.Params, networks.Params]:
+    """One power iteration per layer (``w: [K, in, out]``, PyTorch's weight is its transpose):
+    ``v = norm(w u)``, ``u' = norm(v w)``; returns the new vectors and the critic with every
+    weight divided by ``sigma = v w u'`` (vectors held constant, as PyTorch does)."""
+    new_u, normalised = {}, dict(critic)
+    for i in range(networks.num_layers(critic)):
+        w = critic[f"w{i}"]
+        v = _normalise(jnp.einsum("kio,ko->ki", w, u[f"u{i}"]))
+        u_next = _normalise(jnp.einsum("ki,kio->ko", v, w))
+        v, u_next = jax.lax.stop_gradient((v, u_next))
+        sigma = jnp.einsum("ki,kio,ko->k", v, w, u_next)
+        new_u[f"u{i}"] = u_next
+        normalised[f"w{i}"] = w / sigma[:, None, None]
+    return new_u, normalised
+
+
+def dropout_critic_apply(critic, obs, actions, key, rate: float) -> jax.Array:
+    """Every member's Q with dropout (rate p, kept units scaled by 1/(1-p)) after every hidden
+    ReLU, an independent mask per member and row: ``[K, B]``."""
+    n = networks.num_layers(critic)
+    h = jnp.concatenate([obs, actions], axis=-1)
+    h = jnp.einsum("bi,kio->kbo", h, critic["w0"]) + critic["b0"][:, None, :]
+    keys = jax.random.split(key, max(n - 1, 1))
+    for layer in range(1, n):
+        h = jax.nn.relu(h)
+        if rate > 0:
+            keep = jax.random.bernoulli(keys[layer - 1], 1.0 - rate, h.shape)
+            h = jnp.where(keep, h / (1.0 - rate), 0.0)
+        h = jnp.einsum("kbi,kio->kbo", h, critic[f"w{layer}"]) + critic[f"b{layer}"][:, None, :]
+    return h[..., 0]
+
+
+def uncertainty_weight(variance: jax.Array, config: UWACConfig) -> jax.Array:
+    """``clip(exp(-beta Var))`` (or ``clip(beta / Var)``) into ``[clip_bottom, clip_top]``."""
+    if config.exponential_weight:
+        raw = jnp.exp(-config.beta * variance)
+    else:
+        raw = config.beta / variance
+    return jnp.clip(raw, config.clip_bottom, config.clip_top)
+
+
+@dataclasses.dataclass(frozen=True)
+class DropoutCritics(bear.Critics):
+    """MC-dropout evaluation of the (spectrally normalised) critics."""
+
+    config: UWACConfig
+    u: networks.Params | None = None
+    u_target: networks.Params | None = None
+
+    def _net(self, critic, u):
+        return critic if u is None else power_iteration(critic, u)[1]
+
+    def regress(self, critic, obs, actions, key):
+        net = self._net(critic, self.u)
+        return dropout_critic_apply(net, obs, actions, key, self.config.dropout_rate)
+
+    def _mc(self, net, obs, actions, key):
+        t, size = self.config.num_dropout_samples, obs.shape[0]
+        q = dropout_critic_apply(
+            net, jnp.tile(obs, (t, 1)), jnp.tile(actions, (t, 1)), key, self.config.dropout_rate
+        ).reshape(-1, t, size)  # [K, T, B]
+        return q.mean(axis=1), q.var(axis=1, ddof=1).sum(axis=0)
+
+    def estimate(self, critic, obs, actions, key):
+        return self._mc(self._net(critic, self.u), obs, actions, key)
+
+    def target(self, critic_target, obs, actions, key):
+        return self._mc(self._net(critic_target, self.u_target), obs, actions, key)
+
+    def weight(self, variance):
+        return uncertainty_weight(variance, self.config)
+
+    def actor_weight(self, variance):
+        return self.weight(variance) if self.config.weight_actor else jnp.ones_like(variance)
+
+
+def update(
+    state: UWACState, batch: Batch, key: jax.Array, config: UWACConfig, max_action: float
+) -> tuple[UWACState, dict[str, jax.Array]]:
+    """BEAR's step with MC-dropout critics; then one power iteration of every critic layer."""
+    u = state.spectral_u if config.spectral_norm else None
+    u_target = state.spectral_u_target if config.spectral_norm else None
+    critics = DropoutCritics(config, u, u_target)
+    new_state, metrics = bear.step(state, batch, key, config, max_action, critics)
+    if config.spectral_norm:
+        new_state = new_state.replace(
+            spectral_u=power_iteration(state.critic, state.spectral_u)[0],
+            spectral_u_target=power_iteration(state.critic_target, state.spectral_u_target)[0],
+        )
+    return new_state, metrics
