@@ -25,9 +25,8 @@ from eabc.agents import Algorithm, get_algorithm, validation
 from eabc.agents.common import Batch
 from eabc.data import tasks
 from eabc.data.dataset import Dataset, DatasetError, Normalizer
-from eabc.data.loaders import load_dataset
-from eabc.evaluation import Evaluator, check_spaces
-from eabc.policy import Policy
+from eabc.data.sources import load_dataset
+from eabc.evaluation import Evaluator, Policy, check_spaces
 from eabc.training import checkpoint
 from eabc.training.checkpoint import CONFIG, read_config
 from eabc.training.lock import RunLock
@@ -46,7 +45,7 @@ class TrainConfig:
     """A built-in name (hopper-random, ...), a .hdf5/.npz path, or minari:ID."""
     algo: str = "eabc"
     """Algorithm: eabc, eabc-robust, eabc-auto, eabc-quantile, td3bc, td3, bc, iql, cql, cql-lagrange, wpc,
-    sac-n, edac or edac-10."""
+    sac-n, edac, edac-10, bear, uwac, mopo or morel."""
     seed: int = 0
     """Seeds network initialisation and batch sampling; evaluation uses seed + 100."""
     steps: int = 1_000_000
@@ -108,7 +107,9 @@ def resolve_agent_config(
         overrides["confidence_level"] = p
     if steps is not None and "total_steps" in fields and "total_steps" not in overrides:
         overrides["total_steps"] = steps
-    return validation.validate(algorithm.preset, algo, overrides)
+    config = validation.validate(algorithm.preset, algo, overrides)
+    resolve = getattr(algorithm.module, "resolve", None)  # per-task settings, e.g. MOPO's h
+    return config if resolve is None else resolve(config, dataset_name, set(overrides))
 
 
 @dataclasses.dataclass
@@ -296,6 +297,13 @@ def _build(run_dir, config, agent_config, dataset, state) -> Run:
         "elapsed": 0.0,
         "normalizer": {"mean": normalizer.mean, "std": normalizer.std},
     }
+    pretrain = getattr(algorithm.module, "pretrain", None)
+    if pretrain is not None and state is None:  # e.g. MOPO's dynamics model; resume loads it
+        preprocess = getattr(algorithm.module, "preprocess", None)
+        data = device_data(dataset if preprocess is None else preprocess(dataset), normalizer)
+        fresh["agent"] = pretrain(
+            fresh["agent"], data, jax.random.fold_in(init_key, 1), agent_config, normalizer
+        )
     if state == "checkpoint":
         what = f"this {config.algo} run ({_settings_text(agent_config)}, {dataset.name})"
         saved = checkpoint.load(run_dir, {**fresh, "evaluations": None}, what)

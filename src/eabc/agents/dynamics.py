@@ -1,0 +1,237 @@
+"""A learned dynamics model: an ensemble of probabilistic MLPs, the shared model of MOPO and MOReL.
+
+Member ``k`` maps ``(s, a)`` to a diagonal Gaussian over ``(r, s' - s)``: ``mean_k`` and
+``logvar_k``, the log-variance softly bounded by learned ``max_logvar`` / ``min_logvar`` (shared by
+the members). As in the MBPO/MOPO model (``mbpo/models/bnn.py``, which MOPO uses unchanged):
+
+- training loss ``sum_k mean (mean_k - y)^2 exp(-logvar_k) + mean logvar_k``, plus L2 weight decay
+  per layer and ``0.01 (sum max_logvar - sum min_logvar)``;
+- every member trains on its own bootstrap resample of the training split, reshuffled per epoch;
+- a held-out split (``holdout_ratio`` of the data, at most ``max_holdout`` transitions) scores
+  every member by its mean squared error after each epoch; training stops once no member has
+  improved by more than 1% for ``patience`` epochs, each member keeps its best snapshot, and the
+  ``num_elites`` best members by held-out error are the elites.
+
+Members are one vectorised network (weights ``[K, in, out]``) like the critic ensembles.
+Observations arrive already normalised by the trainer; actions lie in the action box.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from eabc import networks
+from eabc.agents.common import Batch
+
+Params = dict
+
+
+@dataclasses.dataclass(frozen=True)
+class DynamicsConfig:
+    """The ensemble's settings; defaults are MOPO's (``mopo/models/constructor.py``, ``bnn.py``)."""
+
+    num_members: int = 7
+    """Ensemble size (MOPO's num_networks)."""
+    num_elites: int = 5
+    """Members kept for rollouts (MOPO's num_elites)."""
+    hidden_dims: tuple[int, ...] = (200, 200, 200, 200)
+    """Hidden widths (MOPO: four layers of 200)."""
+    activation: str = "swish"
+    """Hidden activation, swish or relu (MOPO: swish)."""
+    weight_decays: tuple[float, ...] = (2.5e-5, 5e-5, 7.5e-5, 7.5e-5, 1e-4)
+    """L2 weight per layer, input to output (MOPO's FC weight_decay); shorter: the last repeats."""
+    lr: float = 1e-3
+    """Adam learning rate (MOPO)."""
+    batch_size: int = 256
+    """Mini-batch per member (MOPO's _train_model)."""
+    holdout_ratio: float = 0.2
+    """Share of the data held out (MOPO's _train_model)."""
+    max_holdout: int = 5000
+    """At most this many held-out transitions (bnn.py's max_logging)."""
+    patience: int = 5
+    """Epochs without a 1% improvement of any member before stopping (max_epochs_since_update)."""
+    max_epochs: int | None = None
+    """Cap on epochs (MOPO: None, train until the patience runs out)."""
+
+    def __post_init__(self):
+        if not 1 <= self.num_elites <= self.num_members:
+            raise ValueError(
+                f"num_elites must lie in [1, num_members={self.num_members}], got {self.num_elites}"
+            )
+        if self.activation not in ("swish", "relu"):
+            raise ValueError(f"activation must be swish or relu, got {self.activation!r}")
+        if not 0.0 < self.holdout_ratio < 1.0:
+            raise ValueError(f"holdout_ratio must lie in (0, 1), got {self.holdout_ratio}")
+
+
+INIT_MAX_LOGVAR, INIT_MIN_LOGVAR = 0.5, -10.0
+"""bnn.py's initial log-variance bounds."""
+LOGVAR_BOUND_WEIGHT = 0.01
+"""bnn.py's weight of ``sum max_logvar - sum min_logvar``."""
+IMPROVEMENT = 0.01
+"""A member improves when its held-out error falls by more than 1% (bnn.py's _save_best)."""
+
+
+def init(key: jax.Array, obs_dim: int, act_dim: int, config: DynamicsConfig) -> Params:
+    out = obs_dim + 1
+    return {
+        "net": networks.init_mlp(
+            key, (obs_dim + act_dim, *config.hidden_dims, 2 * out), num_members=config.num_members
+        ),
+        "max_logvar": jnp.full((out,), INIT_MAX_LOGVAR),
+        "min_logvar": jnp.full((out,), INIT_MIN_LOGVAR),
+    }
+
+
+def predict(params: Params, obs, actions, activation: str = "swish"):
+    """``(mean, logvar)`` of ``(r, s' - s)`` for every member, ``[K, B, 1 + obs_dim]``.
+
+    ``obs, actions`` are ``[B, .]`` (every member sees them) or ``[K, B, .]`` (one batch each).
+    """
+    act = jax.nn.swish if activation == "swish" else jax.nn.relu
+    net = params["net"]
+    n = networks.num_layers(net)
+    h = jnp.concatenate([obs, actions], axis=-1)
+    pattern = "kbi,kio->kbo" if h.ndim == 3 else "bi,kio->kbo"
+    h = jnp.einsum(pattern, h, net["w0"]) + net["b0"][:, None, :]
+    for layer in range(1, n):
+        h = jnp.einsum("kbi,kio->kbo", act(h), net[f"w{layer}"]) + net[f"b{layer}"][:, None, :]
+    mean, logvar = jnp.split(h, 2, axis=-1)
+    max_logvar, min_logvar = params["max_logvar"], params["min_logvar"]
+    logvar = max_logvar - jax.nn.softplus(max_logvar - logvar)
+    logvar = min_logvar + jax.nn.softplus(logvar - min_logvar)
+    return mean, logvar
+
+
+def targets(batch: Batch) -> jax.Array:
+    """What the model predicts: ``(r, s' - s)``."""
+    return jnp.concatenate(
+        [batch.rewards[..., None], batch.next_observations - batch.observations], axis=-1
+    )
+
+
+def training_loss(params: Params, obs, actions, y, config: DynamicsConfig) -> jax.Array:
+    """Gaussian NLL summed over members (inputs ``[K, B, .]``), weight decay, log-variance bounds."""
+    mean, logvar = predict(params, obs, actions, config.activation)
+    nll = (((mean - y) ** 2) * jnp.exp(-logvar)).mean(axis=(1, 2)) + logvar.mean(axis=(1, 2))
+    n = networks.num_layers(params["net"])
+    decays = [config.weight_decays[min(i, len(config.weight_decays) - 1)] for i in range(n)]
+    decay = sum(d * 0.5 * (params["net"][f"w{i}"] ** 2).sum() for i, d in enumerate(decays))
+    bounds = LOGVAR_BOUND_WEIGHT * (params["max_logvar"].sum() - params["min_logvar"].sum())
+    return nll.sum() + decay + bounds
+
+
+def heldout_error(params: Params, obs, actions, y, activation: str = "swish") -> jax.Array:
+    """Every member's mean squared error of its mean prediction, ``[K]``."""
+    mean, _ = predict(params, obs, actions, activation)
+    return ((mean - y[None]) ** 2).mean(axis=(1, 2))
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def _epoch(params, opt_state, order, data: Batch, y, config: DynamicsConfig):
+    """One pass over the training split: ``order: [K, steps, batch]`` indices per member."""
+    tx = optax.adam(config.lr)
+
+    def step(carry, index):
+        params, opt_state = carry
+        loss, grads = jax.value_and_grad(training_loss)(
+            params, data.observations[index], data.actions[index], y[index], config
+        )
+        updates, opt_state = tx.update(grads, opt_state, params)
+        return (optax.apply_updates(params, updates), opt_state), loss
+
+    (params, opt_state), losses = jax.lax.scan(step, (params, opt_state), order.transpose(1, 0, 2))
+    return params, opt_state, losses.mean()
+
+
+def fit(
+    key: jax.Array,
+    data: Batch,
+    config: DynamicsConfig,
+    log: Callable[[str], None] | None = None,
+) -> tuple[Params, jax.Array, dict[str, float]]:
+    """Train an ensemble on ``data`` (one device-resident batch of all transitions).
+
+    Returns the best snapshot of every member, the elites' indices (best first) and a summary.
+    Deterministic given ``key``.
+    """
+    size = data.rewards.shape[0]
+    obs_dim, act_dim = data.observations.shape[1], data.actions.shape[1]
+    split_key, init_key, boot_key, epoch_key = jax.random.split(key, 4)
+    permutation = jax.random.permutation(split_key, size)
+    num_holdout = min(int(size * config.holdout_ratio), config.max_holdout)
+    holdout, train = permutation[:num_holdout], permutation[num_holdout:]
+    y = targets(data)
+    held = jax.tree.map(lambda x: x[holdout], data)
+    y_held = y[holdout]
+    k = config.num_members
+    bootstrap = train[jax.random.randint(boot_key, (k, train.shape[0]), 0, train.shape[0])]
+    steps = max(train.shape[0] // config.batch_size, 1)
+
+    params = init(init_key, obs_dim, act_dim, config)
+    opt_state = optax.adam(config.lr).init(params)
+    error = jax.jit(heldout_error, static_argnames=("activation",))
+    best = np.asarray(error(params, held.observations, held.actions, y_held, config.activation))
+    best_params, since, epoch, losses = params, 0, 0, []
+    while since <= config.patience and (config.max_epochs is None or epoch < config.max_epochs):
+        shuffle = jax.vmap(jax.random.permutation)(
+            jax.random.split(jax.random.fold_in(epoch_key, epoch), k), bootstrap
+        )
+        order = shuffle[:, : steps * config.batch_size].reshape(k, steps, config.batch_size)
+        params, opt_state, loss = _epoch(params, opt_state, order, data, y, config)
+        current = np.asarray(
+            error(params, held.observations, held.actions, y_held, config.activation)
+        )
+        improved = (best - current) / np.maximum(best, 1e-12) > IMPROVEMENT
+        best = np.where(improved, current, best)
+        best_params = select_members(jnp.asarray(improved), params, best_params)
+        since = 0 if improved.any() else since + 1
+        epoch += 1
+        losses.append(float(loss))
+        if log is not None:
+            log(f"dynamics epoch {epoch}: train loss {loss:.4f}, held-out MSE {np.sort(current)}")
+    final = np.asarray(
+        error(best_params, held.observations, held.actions, y_held, config.activation)
+    )
+    elites = jnp.asarray(np.argsort(final)[: config.num_elites], jnp.int32)
+    baseline = float(((y_held - y[train].mean(axis=0)) ** 2).mean())
+    info = {
+        "model_epochs": epoch,
+        "model_heldout_mse": float(final[np.asarray(elites)].mean()),
+        "model_heldout_mse_of_mean": baseline,
+        "model_train_loss": losses[-1] if losses else float("nan"),
+    }
+    return best_params, elites, info
+
+
+def select_members(mask: jax.Array, new: Params, old: Params) -> Params:
+    """Members where ``mask`` is set from ``new``, the others from ``old`` (shared arrays: new)."""
+
+    def pick(a, b):
+        if a.ndim and a.shape[0] == mask.shape[0] and a.ndim > 1:
+            return jnp.where(mask.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)
+        return a
+
+    return {
+        "net": jax.tree.map(pick, new["net"], old["net"]),
+        **{name: new[name] for name in ("max_logvar", "min_logvar")},
+    }
+
+
+def disagreement(mean: jax.Array) -> jax.Array:
+    """MOReL's disagreement: the largest distance between two members' predictions, ``[B]``
+    (``mean: [K, B, d]``)."""
+    diff = mean[:, None] - mean[None, :]
+    return jnp.sqrt((diff**2).sum(-1)).max(axis=(0, 1))
+
+
+def max_std_norm(logvar: jax.Array) -> jax.Array:
+    """MOPO's penalty ``max_k |std_k(s, a)|_2`` (``penalty_learned_var``), ``[B]``."""
+    return jnp.sqrt(jnp.exp(logvar).sum(-1)).max(axis=0)

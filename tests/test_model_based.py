@@ -1,0 +1,225 @@
+"""The dynamics ensemble, MOPO and MOReL: the model's loss, penalised reward, halting rule,
+termination and rollout buffer against NumPy; the model beats predicting the mean; per-task
+settings; the trained model is saved with the run; learning on Pendulum."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from handcalc import ACT, OBS, B, member
+
+from eabc.agents import dynamics, get_algorithm, mopo, morel
+from eabc.training import trainer
+
+SMALL = {"model_members": 3, "model_elites": 2, "model_hidden_dims": (8, 8), "hidden_dims": (8, 8)}
+
+
+def np_predict(params, obs, act, k, activation="swish"):
+    """Every member's mean and bounded log-variance by hand, ``[k, B, 1 + OBS]``."""
+    x = np.concatenate([obs, act], -1).astype(np.float64)
+    means, logvars = [], []
+    for i in range(k):
+        p = {n: np.asarray(v, np.float64) for n, v in member(params["net"], i).items()}
+        h = x
+        layers = len(p) // 2
+        for j in range(layers):
+            h = h @ p[f"w{j}"] + p[f"b{j}"]
+            if j < layers - 1:
+                h = h / (1 + np.exp(-h)) if activation == "swish" else np.maximum(h, 0)
+        mean, logvar = np.split(h, 2, -1)
+        hi, lo = np.float64(params["max_logvar"]), np.float64(params["min_logvar"])
+        logvar = hi - np.log1p(np.exp(hi - logvar))
+        logvar = lo + np.log1p(np.exp(logvar - lo))
+        means.append(mean)
+        logvars.append(logvar)
+    return np.stack(means), np.stack(logvars)
+
+
+def model_state(config, seed=0):
+    state = mopo.init(jax.random.PRNGKey(seed), OBS, ACT, config)
+    # Log-variances in the middle of the bounds, so that the penalty is not at a bound.
+    net = dict(state.model["net"])
+    net["b2"] = net["b2"].at[:, OBS + 1 :].set(-1.0)
+    return state.replace(model={**state.model, "net": net})
+
+
+def test_dynamics_loss_is_the_gaussian_nll_with_decay_and_bounds(batch):
+    config = dynamics.DynamicsConfig(num_members=3, num_elites=2, hidden_dims=(8, 8))
+    params = dynamics.init(jax.random.PRNGKey(0), OBS, ACT, config)
+    obs = jnp.stack([batch.observations] * 3)
+    act = jnp.stack([batch.actions] * 3)
+    y = dynamics.targets(batch)
+    loss = dynamics.training_loss(params, obs, act, jnp.stack([y] * 3), config)
+
+    s, a = np.float64(batch.observations), np.float64(batch.actions)
+    mean, logvar = np_predict(params, s, a, 3)
+    yy = np.concatenate(
+        [np.float64(batch.rewards)[:, None], np.float64(batch.next_observations) - s], -1
+    )
+    nll = (((mean - yy) ** 2) * np.exp(-logvar)).mean((1, 2)) + logvar.mean((1, 2))
+    decay = sum(
+        d * 0.5 * (np.float64(params["net"][f"w{i}"]) ** 2).sum()
+        for i, d in enumerate((2.5e-5, 5e-5, 7.5e-5))
+    )
+    bounds = 0.01 * (
+        np.float64(params["max_logvar"]).sum() - np.float64(params["min_logvar"]).sum()
+    )
+    np.testing.assert_allclose(loss, nll.sum() + decay + bounds, rtol=1e-5)
+
+
+def test_dynamics_beats_predicting_the_mean_and_is_deterministic(pendulum_dataset):
+    from eabc.data.dataset import Normalizer
+
+    normalizer = Normalizer.fit(pendulum_dataset.observations)
+    data = trainer.device_data(pendulum_dataset, normalizer)
+    config = dynamics.DynamicsConfig(
+        num_members=3, num_elites=2, hidden_dims=(64, 64), max_epochs=8
+    )
+    params, elites, info = dynamics.fit(jax.random.PRNGKey(0), data, config)
+    assert info["model_heldout_mse"] < 0.2 * info["model_heldout_mse_of_mean"], info
+    assert elites.shape == (2,) and len(set(np.asarray(elites).tolist())) == 2
+    again, elites_again, _ = dynamics.fit(jax.random.PRNGKey(0), data, config)
+    np.testing.assert_array_equal(again["net"]["w1"], params["net"]["w1"])
+    np.testing.assert_array_equal(elites_again, elites)
+
+
+@pytest.mark.parametrize("sample", [False, True])
+def test_mopo_reward_is_the_model_reward_less_lambda_times_the_max_std_norm(batch, sample):
+    config = mopo.MOPOConfig(**SMALL, penalty_coeff=2.5, model_sample=sample, termination="none")
+    state = model_state(config)
+    key = jax.random.PRNGKey(4)
+    next_obs, reward, done, penalty, _ = mopo.model_step(
+        state, batch.observations, batch.actions, key, config
+    )
+
+    s, a = np.float64(batch.observations), np.float64(batch.actions)
+    mean, logvar = np_predict(state.model, s, a, 3)
+    member_key, noise_key = jax.random.split(key)
+    members = np.asarray(state.elites)[np.asarray(jax.random.randint(member_key, (B,), 0, 2))]
+    pick = mean[members, np.arange(B)]
+    if sample:
+        eps = np.float64(jax.random.normal(noise_key, pick.shape))
+        pick = pick + np.exp(0.5 * logvar[members, np.arange(B)]) * eps
+    u = np.sqrt(np.exp(logvar).sum(-1)).max(0)  # max over all members of |std|
+    np.testing.assert_allclose(penalty, u, rtol=1e-5)
+    np.testing.assert_allclose(reward, pick[:, 0] - 2.5 * u, rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(next_obs, s + pick[:, 1:], rtol=1e-5, atol=1e-6)
+    assert not np.asarray(done).any()
+
+
+def test_morel_halts_where_the_members_disagree_beyond_the_threshold(batch):
+    config = morel.MOReLConfig(
+        **SMALL, halt_reward=-7.0, termination="none", model_activation="relu"
+    )
+    state = model_state(config)
+    s, a = np.float64(batch.observations), np.float64(batch.actions)
+    mean, _ = np_predict(state.model, s, a, 3, "relu")
+    spread = np.array(
+        [
+            max(np.linalg.norm(mean[i, b, 1:] - mean[j, b, 1:]) for i in range(3) for j in range(3))
+            for b in range(B)
+        ]
+    )
+    threshold = float(np.sort(spread)[3:5].mean())  # between two rows: no ties
+    state = state.replace(halt_threshold=jnp.asarray(threshold, jnp.float32))
+    _, reward, done, _, got = mopo.model_step(
+        state, batch.observations, batch.actions, jax.random.PRNGKey(1), config
+    )
+    np.testing.assert_allclose(got, spread, rtol=1e-5)
+    halted = spread > threshold
+    assert halted.any() and not halted.all()
+    np.testing.assert_array_equal(np.asarray(done), halted)
+    np.testing.assert_allclose(np.asarray(reward)[halted], -7.0)
+    assert not np.allclose(np.asarray(reward)[~halted], -7.0)
+
+
+def test_termination_rules_are_mbpo_static_functions():
+    raw = jnp.asarray([[1.2, 0.0, 0.0], [0.6, 0.0, 0.0], [1.2, 0.3, 0.0], [1.2, 0.0, 200.0]])
+    np.testing.assert_array_equal(mopo.terminated(raw, "hopper"), [False, True, True, True])
+    walker = jnp.asarray([[1.2, 0.5], [2.1, 0.0], [1.0, -1.2], [0.7, 0.0]])
+    np.testing.assert_array_equal(mopo.terminated(walker, "walker2d"), [False, True, True, True])
+    assert not mopo.terminated(raw, "none").any()
+
+
+def test_rollouts_fill_the_ring_buffer_and_stop_at_terminals(batch):
+    config = mopo.MOPOConfig(**SMALL, rollout_length=3, buffer_capacity=32, termination="none")
+    state = model_state(config)
+    new, _ = mopo.rollout(state, batch.observations, jax.random.PRNGKey(0), config, 1.0)
+    assert int(new.buffer_count) == 3 * B and int(new.buffer_ptr) == 3 * B
+    buffer = new.buffer
+    np.testing.assert_allclose(buffer.observations[:B], batch.observations, rtol=1e-6)
+    np.testing.assert_array_equal(buffer.observations[B : 2 * B], buffer.next_observations[:B])
+    again, _ = mopo.rollout(new, batch.observations, jax.random.PRNGKey(1), config, 1.0)
+    assert int(again.buffer_count) == 32 and int(again.buffer_ptr) == (6 * B) % 32  # wrapped
+    np.testing.assert_allclose(
+        again.buffer.observations[3 * B : 4 * B], batch.observations, rtol=1e-6
+    )
+    halting = state.replace(halt_threshold=jnp.asarray(-1.0))  # every step halts
+    new, metrics = mopo.rollout(halting, batch.observations, jax.random.PRNGKey(0), config, 1.0)
+    assert int(new.buffer_count) == B, "only the first step of each rollout is written"
+    np.testing.assert_allclose(metrics["rollout_done"], 1.0)
+
+
+def test_update_refills_every_interval_and_mixes_real_data(batch):
+    config = mopo.MOPOConfig(
+        **SMALL, rollout_length=2, rollout_interval=2, real_ratio=0.3, termination="none"
+    )
+    state = model_state(config)
+    update = jax.jit(mopo.update, static_argnums=(3, 4))
+    counts = []
+    for i in range(4):
+        state, metrics = update(state, batch, jax.random.PRNGKey(i), config, 1.0)
+        counts.append(int(metrics["model_buffer"]))
+    assert counts == [2 * B, 2 * B, 4 * B, 4 * B]
+    mixed = mopo.mixed_batch(state, batch, jax.random.PRNGKey(0), config)
+    np.testing.assert_array_equal(mixed.observations[:2], batch.observations[:2])  # round(0.3 * 7)
+
+
+def test_per_task_settings_are_resolved_from_the_dataset_name():
+    config = trainer.resolve_agent_config("mopo", "hopper-medium", {})
+    assert (config.rollout_length, config.penalty_coeff, config.termination) == (5, 5.0, "hopper")
+    config = trainer.resolve_agent_config("mopo", "halfcheetah-medium", {"penalty_coeff": 0.3})
+    assert (config.rollout_length, config.penalty_coeff, config.termination) == (1, 0.3, "none")
+    config = trainer.resolve_agent_config("morel", "walker2d-medium", {})
+    assert (config.rollout_length, config.penalty_coeff, config.termination) == (5, 0.0, "walker2d")
+    assert get_algorithm("mopo").gaussian_actor and get_algorithm("morel").gaussian_actor
+
+
+# ------------------------------------------------------------------------- the run, learning
+
+LEARNING = {
+    "model_members": 3,
+    "model_elites": 2,
+    "model_hidden_dims": (64, 64),
+    "model_max_epochs": 10,
+    "buffer_capacity": 20_000,
+}
+
+
+def test_the_trained_model_is_saved_with_the_run_and_resumed(tmp_path, pendulum_dataset):
+    config = trainer.TrainConfig(algo="morel", steps=200, log_interval=100, eval_interval=200,
+                                 checkpoint_interval=100, eval_episodes=1, env="Pendulum-v1")  # fmt: skip
+    overrides = {**LEARNING, "hidden_dims": (8, 8), "model_max_epochs": 2}
+    run = trainer.start(config, tmp_path / "m", overrides, pendulum_dataset)
+    assert np.isfinite(float(run.state["agent"].halt_threshold))
+    trained = np.asarray(run.state["agent"].model["net"]["w1"])
+    fresh = mopo.init(
+        jax.random.PRNGKey(0), pendulum_dataset.obs_dim, pendulum_dataset.act_dim, run.agent_config
+    )
+    assert not np.allclose(trained, fresh.model["net"]["w1"])
+    trainer.train(run, progress=False)
+    resumed = trainer.resume(tmp_path / "m", pendulum_dataset)
+    np.testing.assert_array_equal(resumed.state["agent"].model["net"]["w1"], trained)
+    np.testing.assert_array_equal(
+        resumed.state["agent"].halt_threshold, run.state["agent"].halt_threshold
+    )
+
+
+@pytest.mark.parametrize("algo", ["mopo", "morel"])
+def test_mopo_and_morel_improve_on_the_untrained_policy(tmp_path, pendulum_dataset, algo):
+    from learning import MARGIN, late_gain
+
+    untrained, late, evaluations = late_gain(tmp_path, pendulum_dataset, algo, dict(LEARNING))
+    assert late > untrained + MARGIN, (untrained, evaluations)
