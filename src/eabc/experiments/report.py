@@ -31,10 +31,12 @@ from eabc.experiments.stats import STATISTICS, _aggregates_batched, stratified_b
 ENV_ORDER = ("hopper", "halfcheetah", "walker2d")
 KIND_ORDER = ("random", "medium", "medium-replay", "medium-expert", "expert")
 ALGO_ORDER = (
-    "bc", "td3", "td3bc", "cql", "iql", "wpc", "sac-n", "edac", "edac-10", "eabc",
+    "bc", "td3", "td3bc", "cql", "iql", "wpc", "sac-n", "bear", "morel", "mopo", "uwac", "edac",
+    "edac-10", "eabc",
     "eabc-quantile", "eabc-auto", "eabc-robust",
 )  # fmt: skip
-"""Table 1's column order, then Table 6's, then EABC's variants; unknown algorithms go just
+"""Table 1's column order, then Table 6's (BEAR, MOReL, MOPO, UWAC, EDAC, EDAC-10, EABC), then
+EABC's variants; unknown algorithms go just
 before EABC."""
 ABLATION_PARAMETERS = ("num_critics", "confidence_level", "pessimism")
 PESSIMISM_ORDER = ("mean-std", "min", "min2")

@@ -78,10 +78,10 @@ PRESETS: dict[str, dict[str, Any]] = {
         "algos": ["bc", "td3", "td3bc", "cql", "iql", "wpc", "eabc"],
         "seeds": [0, 1, 2, 3, 4],
     },
-    # Table 6: against EDAC (50 critics) and EDAC-10.
+    # Table 6: BEAR, MOReL, MOPO, UWAC (its column order), EDAC (50 critics), EDAC-10 and EABC.
     "table6": {
         "datasets": generate.builtin_names(),
-        "algos": ["edac", "edac-10", "eabc"],
+        "algos": ["bear", "morel", "mopo", "uwac", "edac", "edac-10", "eabc"],
         "seeds": [0, 1, 2, 3, 4],
     },
     # Figure 2: K in {3, 5, 7, 10, 20, 30} with Table 3's p.
