@@ -4,15 +4,45 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 import sys
 from pathlib import Path
 from typing import Annotated, Literal
 
 import tyro
 
-from eabc import compile_cache
+from eabc import __version__, compile_cache
 from eabc.training.online import SACTrainConfig
 from eabc.training.trainer import TrainConfig
+
+
+def _parsed_unchecked(config_class: type) -> type:
+    """``config_class`` without its ``__post_init__`` checks, for parsing only.
+
+    tyro reports an error raised while it builds a nested dataclass under the dataclass's internal
+    name (``__tyro-dummy-inner__.config``); checked in :func:`_checked` instead, the message can
+    name the user's flags (``--eval-interval must be a multiple of --log-interval=300``).
+    """
+    namespace = {"__post_init__": lambda self: None, "__doc__": config_class.__doc__}
+    return dataclasses.dataclass(frozen=True)(
+        type(config_class.__name__, (config_class,), namespace)
+    )
+
+
+def _checked(options, config_class: type):
+    """The parsed ``options`` as a checked ``config_class``; field names in errors as flags."""
+    values = {f.name: getattr(options, f.name) for f in dataclasses.fields(config_class)}
+    try:
+        return config_class(**values)
+    except ValueError as error:
+        message = str(error)
+        for name in values:
+            message = re.sub(rf"\b{name}\b", "--" + name.replace("_", "-"), message)
+        raise ValueError(message) from None
+
+
+TrainOptions = _parsed_unchecked(TrainConfig)
+SACTrainOptions = _parsed_unchecked(SACTrainConfig)
 
 SWEEP_PRESETS = (
     "table1",
@@ -45,7 +75,7 @@ class AgentOverrides:
 class Train:
     """Train an offline RL agent with the paper's protocol: progress bar, logs, checkpoints, curve."""
 
-    config: Annotated[TrainConfig, tyro.conf.OmitArgPrefixes]
+    config: Annotated[TrainOptions, tyro.conf.OmitArgPrefixes]
     agent: Annotated[AgentOverrides, tyro.conf.OmitArgPrefixes]
     set: tuple[str, ...] = ()
     """Any other setting of the algorithm as KEY=VALUE, e.g. eta=0.5, expectile=0.8,
@@ -63,7 +93,7 @@ class Train:
 class Evaluate:
     """Re-score a run's latest checkpoint in its evaluation environment."""
 
-    run_dir: tyro.conf.Positional[str]
+    run_dir: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="RUN_DIR")]
     episodes: int = 10
     """Episodes to run."""
     seed: int | None = None
@@ -74,7 +104,7 @@ class Evaluate:
 class DataMake:
     """Make a built-in D4RL-style dataset (e.g. hopper-random) in the cache directory."""
 
-    name: tyro.conf.Positional[str]
+    name: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="NAME")]
     seed: int = 0
     """Seed of the environment and the actions; the same seed gives the same file."""
     size: int | None = None
@@ -89,7 +119,7 @@ class DataMake:
 class DataInfo:
     """Describe a dataset: size, episodes, returns and normalised score."""
 
-    name: tyro.conf.Positional[str]
+    name: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="NAME")]
     """A built-in name, a file path or minari:ID."""
     cache_dir: str | None = None
     """Cache directory (default $EABC_CACHE_DIR or ~/.cache/eabc)."""
@@ -112,7 +142,7 @@ class Sac:
     --resume continues a killed run.
     """
 
-    config: Annotated[SACTrainConfig, tyro.conf.OmitArgPrefixes]
+    config: Annotated[SACTrainOptions, tyro.conf.OmitArgPrefixes]
     run_dir: str | None = None
     """Where the run goes (default runs/sac_ENV_seedS)."""
     resume: str | None = None
@@ -164,7 +194,7 @@ class Sweep:
     the paper's tables and figures come from `eabc report ROOT`.
     """
 
-    spec: tyro.conf.Positional[str | None] = None
+    spec: Annotated[str | None, tyro.conf.Positional, tyro.conf.arg(metavar="SPEC")] = None
     """A YAML file with datasets, algos, seeds, steps, grid and train keys (optional)."""
     preset: Literal[SWEEP_PRESETS] | None = None  # type: ignore[valid-type]
     """The paper's grids (table1, table6, ablation-*: 15 datasets x 5 seeds) or issue 14's study
@@ -197,13 +227,30 @@ class Sweep:
     """Ray: GPUs declared per job (e.g. 0.25 to pack four jobs per GPU)."""
     dry_run: bool = False
     """List the runs, their state and the estimated cost, then stop."""
+    eval_interval: int | None = None
+    """Evaluate every this many steps (default the spec's, else 5000)."""
+    eval_episodes: int | None = None
+    """Episodes per evaluation (default the spec's, else 10)."""
+    log_interval: int | None = None
+    """Steps per compiled chunk and log row (default the spec's, else 1000)."""
+    checkpoint_interval: int | None = None
+    """Checkpoint every this many steps (default the spec's, else 5000)."""
+    batch_size: int | None = None
+    """Mini-batch size (default the spec's, else 256)."""
+
+
+SWEEP_TRAIN_FLAGS = (
+    "eval_interval", "eval_episodes", "log_interval", "checkpoint_interval", "batch_size",
+)  # fmt: skip
+"""The train options `eabc sweep` takes as flags (any other goes in a spec's train: key)."""
 
 
 @dataclasses.dataclass(frozen=True)
 class Results:
     """List the runs of a sweep root (or any directory of runs) from its results store."""
 
-    root: tyro.conf.Positional[str]
+    root: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="ROOT")]
+    """A sweep root or any directory that holds run directories."""
     filter: tuple[str, ...] = ()
     """KEY=VALUE filters, e.g. dataset=hopper-* algo=eabc status=done."""
     columns: tuple[str, ...] = (
@@ -219,7 +266,7 @@ class Results:
 class Report:
     """Make the paper's tables (Markdown, HTML, LaTeX) and figures from a sweep's results."""
 
-    root: tyro.conf.Positional[str]
+    root: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="ROOT")]
     out: str | None = None
     """Output directory (default ROOT/report)."""
 
@@ -237,6 +284,9 @@ def sweep_spec(cmd: Sweep) -> dict:
             spec[key] = list(getattr(cmd, key))
     if cmd.steps is not None:
         spec["steps"] = cmd.steps
+    train = {k: getattr(cmd, k) for k in SWEEP_TRAIN_FLAGS if getattr(cmd, k) is not None}
+    if train:  # flags beside the spec's train: keys, which they replace
+        spec["train"] = {**(spec.get("train") or {}), **train}
     grid = dict(spec.get("grid") or {})
     for item in cmd.grid:
         key, sep, values = item.partition("=")
@@ -318,8 +368,17 @@ def run_sweep(cmd: Sweep) -> None:
 def run_results(cmd: Results) -> None:
     from eabc.experiments import results  # noqa: PLC0415
 
+    if not Path(cmd.root).is_dir():
+        raise FileNotFoundError(f"{cmd.root} does not exist; give a sweep root or a run directory")
     runs, _ = results.collect(cmd.root)
+    if runs.empty:
+        print(f"no runs under {cmd.root}")
+        return
+    found = len(runs)
     runs = results.query(runs, list(cmd.filter))
+    if runs.empty:
+        print(f"none of the {found} runs under {cmd.root} match {' '.join(cmd.filter)}")
+        return
     missing = [c for c in cmd.columns if c not in runs.columns]
     if missing:
         raise ValueError(f"unknown column(s) {missing}; choose from {', '.join(runs.columns)}")
@@ -379,7 +438,7 @@ def run_evaluate(cmd: Evaluate) -> dict:
 class DataExport:
     """Export a dataset to the local Minari path, for d3rlpy, CORL and other Minari readers."""
 
-    name: tyro.conf.Positional[str]
+    name: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="NAME")]
     """A built-in name (made first if needed), a file path or minari:ID."""
     minari: bool = True
     """Export as a Minari dataset (the only format for now)."""
@@ -440,12 +499,26 @@ def main(argv: list[str] | None = None) -> None:
         "data": DataList,
     }
     description = "EABC: ensemble-based offline RL with adaptive behaviour cloning."
+    if argv[:1] in (["--version"], ["-V"]):
+        print(f"eabc {__version__}")
+        return
+    prog = "eabc"
     if argv[:1] == ["data"]:  # a second level: eabc data {make,list,info}
         commands = {"make": DataMake, "list": DataList, "info": DataInfo, "export": DataExport}
         argv = argv[1:]
+        prog = "eabc data"
         description = "Datasets: make the built-in ones, list the cache, describe any dataset, export to Minari."
     try:
-        cmd = tyro.extras.subcommand_cli_from_dict(commands, args=argv, description=description)
+        cmd = tyro.extras.subcommand_cli_from_dict(
+            commands,
+            args=argv,
+            prog=prog,  # not the interpreter's path to the entry point
+            description=description,
+            config=(tyro.conf.DisallowNone,),  # --env STR, not --env {None}|STR
+        )
+        if isinstance(cmd, Train | Sac):  # checked here, so that errors name the flags
+            config_class = TrainConfig if isinstance(cmd, Train) else SACTrainConfig
+            cmd = dataclasses.replace(cmd, config=_checked(cmd.config, config_class))
     except ValueError as error:  # invalid settings caught in a dataclass __post_init__
         sys.exit(f"error: {error}")
     options = getattr(cmd, "config", cmd)

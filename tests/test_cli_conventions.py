@@ -1,0 +1,64 @@
+"""The command line follows the conventions of the tools around it: --version, usage lines that
+name the command, readable metavars, errors that name the user's flag, one-line empty results."""
+
+from __future__ import annotations
+
+import sys
+
+import pytest
+import yaml
+
+import eabc
+from eabc.cli import Sweep, main, sweep_spec
+
+
+def test_version(capsys):
+    main(["--version"])
+    assert capsys.readouterr().out.strip() == f"eabc {eabc.__version__}"
+
+
+@pytest.mark.parametrize(
+    ("argv", "usage"),
+    [
+        (["train", "--help"], "usage: eabc train "),
+        (["data", "export", "--help"], "usage: eabc data export "),
+        (["sweep", "--help"], "usage: eabc sweep "),
+    ],
+)
+def test_usage_names_the_command_and_metavars_read_plainly(argv, usage, capsys):
+    with pytest.raises(SystemExit):
+        main(argv)
+    text = capsys.readouterr().out
+    assert text.startswith(usage), text.splitlines()[0]
+    assert sys.executable not in text and "{None}" not in text
+    if argv[0] == "data":
+        assert "NAME" in text.splitlines()[0]  # the positional, not STR
+
+
+def test_an_interval_mismatch_names_the_flags(capsys):
+    with pytest.raises(SystemExit) as error:
+        main(["train", "--eval-interval", "150", "--log-interval", "100"])
+    assert str(error.value.code) == (
+        "error: --eval-interval must be a multiple of --log-interval=100"
+    )
+    assert "tyro" not in capsys.readouterr().err
+
+
+def test_sweep_takes_the_common_train_options_as_flags(tmp_path):
+    spec = tmp_path / "spec.yaml"
+    spec.write_text(
+        yaml.safe_dump(
+            {"datasets": ["hopper-random"], "algos": ["bc"], "train": {"eval_episodes": 3}}
+        )
+    )
+    flags = dict(eval_interval=500, log_interval=100, checkpoint_interval=500, batch_size=64)
+    merged = sweep_spec(Sweep(spec=str(spec), **flags))
+    assert merged["train"] == {"eval_episodes": 3, **flags}
+    assert sweep_spec(Sweep(spec=str(spec), eval_episodes=1))["train"] == {"eval_episodes": 1}
+
+
+def test_results_on_a_missing_or_empty_root_say_so_in_one_line(tmp_path, capsys):
+    with pytest.raises(SystemExit, match=r"error: .*nothing does not exist"):
+        main(["results", str(tmp_path / "nothing")])
+    main(["results", str(tmp_path)])
+    assert capsys.readouterr().out == f"no runs under {tmp_path}\n"
