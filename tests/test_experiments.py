@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -179,16 +180,21 @@ def _cli(datasets, root, *extra):
     ]  # fmt: skip
 
 
-def test_ray_backend_runs_a_sweep_on_a_local_ray_instance(tmp_path, two_datasets):
+def test_ray_backend_runs_a_sweep_on_a_local_ray_instance(tmp_path, two_datasets, monkeypatch):
     ray = pytest.importorskip("ray")
-    root = tmp_path / "ray-sweep"
-    spec = _spec(two_datasets, steps=200)
-    runs = sweep.expand(spec)
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    # The driver then works elsewhere, with a relative root and relative dataset paths (the
+    # README's way); the workers kept the directory they started in.
+    (tmp_path / "driver").mkdir()
+    monkeypatch.chdir(tmp_path / "driver")
+    root = Path("ray-sweep")
+    spec = _spec([os.path.relpath(d) for d in two_datasets], steps=200)
+    runs = sweep.expand(spec)
     try:
         sweep.run_ray(sweep.jobs(runs, root, "vmap"), root)
     finally:
         ray.shutdown()
     assert [sweep.status(r, root)[0] for r in runs] == ["done"] * 8
+    assert len(list((tmp_path / "driver" / "ray-sweep" / sweep.RUNS).iterdir())) == 8
     table, _ = results.collect(root)
     assert len(table) == 8 and table["final_score"].notna().all()

@@ -199,14 +199,15 @@ def is_path(dataset: str) -> bool:
 
 
 def differences(stored: RunSpec, run: RunSpec) -> list[str]:
-    """What makes ``run`` another run than ``stored`` (steps aside: more steps extend a run)."""
+    """What makes ``run`` another run than ``stored`` (steps aside: more steps extend a run; where
+    built-in datasets are cached neither: their content fingerprint is checked on resume)."""
     out = [
         f"{name} {getattr(stored, name)!r} -> {getattr(run, name)!r}"
         for name in ("dataset", "algo", "seed", "overrides")
         if getattr(stored, name) != getattr(run, name)
     ]
     old, new = dict(stored.train), dict(run.train)
-    for key in sorted((set(old) | set(new)) - {"steps"}):
+    for key in sorted((set(old) | set(new)) - {"steps", "cache_dir"}):
         if old.get(key) != new.get(key):
             out.append(f"{key} {old.get(key)!r} -> {new.get(key)!r}")
     return out
@@ -262,6 +263,8 @@ def expand(spec: dict[str, Any]) -> list[RunSpec]:
         where = ".".join(map(str, first["loc"])) or "train"
         raise ValueError(f"bad train setting {where}: {first['msg']}") from None
     train = {k: getattr(checked, k) for k in train}
+    if train.get("cache_dir"):  # absolute, as dataset files below: workers start elsewhere
+        train["cache_dir"] = str(Path(train["cache_dir"]).expanduser().resolve())
     grid = {
         k: list(v) if isinstance(v, list | tuple) else [v]
         for k, v in (spec.get("grid") or {}).items()
@@ -481,6 +484,16 @@ def execute(job: list[dict], root: str) -> list[dict]:
     return summaries
 
 
+def _absolute(run: RunSpec) -> dict:
+    """``run`` as JSON with its dataset file and cache directory as absolute paths."""
+    data = run.to_json()
+    if is_path(run.dataset):
+        data["dataset"] = str(Path(run.dataset).expanduser().resolve())
+    if data["train"].get("cache_dir"):
+        data["train"]["cache_dir"] = str(Path(data["train"]["cache_dir"]).expanduser().resolve())
+    return data
+
+
 SINGLE_THREAD = {
     "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1",
     "OMP_NUM_THREADS": "1",
@@ -566,16 +579,24 @@ def run_ray(
     num_gpus: float = 0.0,
     log=print,
 ) -> None:
-    """One Ray task per job with declared CPU/GPU resources; ``root`` must be a shared directory."""
-    import ray  # noqa: PLC0415
+    """One Ray task per job with declared CPU/GPU resources; ``root`` must be a shared directory.
 
+    Paths go to the workers absolute (the root, dataset files, the cache directory): a worker's
+    working directory is not the driver's.
+    """
+    try:
+        import ray  # noqa: PLC0415
+    except ImportError:
+        raise RuntimeError("--backend ray needs the ray package: pip install 'eabc[ray]'") from None
+
+    root = Path(root).expanduser().resolve()
     if not ray.is_initialized():
         ray.init(address=address, log_to_driver=False)
     env_vars = SINGLE_THREAD if num_gpus == 0 and num_cpus <= 1 else {}
     remote = ray.remote(execute).options(
         num_cpus=num_cpus, num_gpus=num_gpus, runtime_env={"env_vars": env_vars}, max_retries=2
     )
-    futures = {remote.remote([r.to_json() for r in job], str(root)): job for job in job_list}
+    futures = {remote.remote([_absolute(r) for r in job], str(root)): job for job in job_list}
     failures = []
     while futures:
         done, _ = ray.wait(list(futures), num_returns=1)
