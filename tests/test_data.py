@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import h5py
 import minari
@@ -63,6 +64,7 @@ def test_d4rl_file_without_next_observations_follows_qlearning_dataset(tmp_path)
     np.testing.assert_array_equal(data.rewards, [0, 1, 2, 4])
     np.testing.assert_array_equal(data.next_observations, obs[[1, 2, 3, 5]])
     np.testing.assert_array_equal(data.terminals, [0, 1, 0, 0])
+    np.testing.assert_array_equal(data.timeouts, [0, 0, 1, 0])  # row 2 now ends its episode
     assert data.env_id == "Hopper-v4" and data.ref_min_score == tasks.ENVS["hopper"].ref_min_score
 
 
@@ -193,3 +195,68 @@ def test_minari_dataset_loads_from_the_local_path(tmp_path, monkeypatch):
     assert data.timeouts.sum() == 2
     with pytest.raises(DatasetError, match="not in the local Minari path"):
         load_dataset("minari:test/pendulum/other-v0")
+
+
+def test_minari_ids_resolve_table_3_from_their_task_and_kind():
+    assert tasks.parse_task("mujoco/hopper/medium-v0") == ("hopper", "medium")
+    assert tasks.parse_task("eabc/walker2d/medium-replay-v0") == ("walker2d", "medium-replay")
+    for dataset_id in ("minari:mujoco/hopper/medium-v0", "eabc/hopper/medium-v0"):
+        assert resolve_agent_config("eabc", dataset_id, {}).confidence_level == 0.25
+
+
+def test_export_of_a_file_without_next_observations_keeps_its_episodes(tmp_path, monkeypatch):
+    """A timeout inside a file without s' (D4RL's qlearning_dataset drops that step) still ends
+    its episode: Minari gets three episodes, not two merged ones with a made-up transition."""
+    from eabc.data.loaders import export_minari  # noqa: PLC0415
+
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "minari"))
+    n = 13  # episodes: rows 0-3 (timeout at 3), 4-8 (terminal at 8), 9-12 (the file's end)
+    obs = np.arange(3 * n, dtype=np.float32).reshape(n, 3)
+    np.savez(
+        tmp_path / "pend.npz",
+        observations=obs,
+        actions=np.zeros((n, 1), np.float32),
+        rewards=np.ones(n, np.float32),
+        terminals=np.eye(n, dtype=bool)[8],
+        timeouts=np.eye(n, dtype=bool)[3],
+        env_id=np.asarray("Pendulum-v1"),
+    )
+    data = load_dataset(tmp_path / "pend.npz")
+    np.testing.assert_array_equal(np.flatnonzero(data.timeouts), [2])
+    assert generate.describe_dataset(data)["episodes"] == 3
+    export_minari(data, "test/pendulum/no-next-v0")
+    episodes = list(minari.load_dataset("test/pendulum/no-next-v0").iterate_episodes())
+    assert [len(e.rewards) for e in episodes] == [3, 5, 3]
+    np.testing.assert_array_equal(episodes[0].observations, obs[0:4])
+    np.testing.assert_array_equal(episodes[1].observations, obs[4:10])
+    np.testing.assert_array_equal(episodes[2].observations, obs[9:13])
+    assert [bool(e.truncations[-1]) for e in episodes] == [True, False, True]
+    assert [bool(e.terminations[-1]) for e in episodes] == [False, True, False]
+
+
+def test_a_dataset_made_with_minaris_data_collector_trains(tmp_path, monkeypatch, capsys):
+    import gymnasium as gym  # noqa: PLC0415
+
+    from eabc.cli import main  # noqa: PLC0415
+
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "minari"))
+    env = minari.DataCollector(gym.make("Pendulum-v1", max_episode_steps=50))
+    env.action_space.seed(0)
+    for episode in range(6):
+        env.reset(seed=episode)
+        done = False
+        while not done:
+            _, _, terminated, truncated, _ = env.step(env.action_space.sample())
+            done = terminated or truncated
+    env.create_dataset("test/pendulum/collected-v0", algorithm_name="uniform random")
+    env.close()
+    run_dir = tmp_path / "run"
+    main(
+        ["train", "--dataset", "minari:test/pendulum/collected-v0", "--algo", "bc", "--steps",
+         "100", "--log-interval", "100", "--eval-interval", "100", "--checkpoint-interval", "100",
+         "--eval-episodes", "1", "--run-dir", str(run_dir), "--no-progress"]
+    )  # fmt: skip
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["steps"] == 100 and summary["evaluations"] == 1
+    config = json.loads((run_dir / "config.json").read_text())
+    assert config["dataset"]["size"] == 300 and config["dataset"]["env_id"] == "Pendulum-v1"

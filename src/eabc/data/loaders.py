@@ -120,11 +120,19 @@ def from_arrays(arrays: dict[str, np.ndarray], attrs: dict, default_name: str) -
 
 
 def _with_next_observations(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """D4RL's ``qlearning_dataset``: ``s'`` is the next row; a timeout step has no ``s'`` and is dropped."""
-    keep = ~np.asarray(arrays["timeouts"], bool)
+    """D4RL's ``qlearning_dataset``: ``s'`` is the next row; a timeout step has no ``s'`` and is dropped.
+
+    The step before a dropped timeout step then ends its episode, so it becomes the timeout: the
+    episode boundaries stay where they were (Minari export, episode counts), and training, which
+    ends an episode's return only at terminals, is unchanged.
+    """
+    timeouts = np.asarray(arrays["timeouts"], bool)
+    keep = ~timeouts
     keep[-1] = False
     out = {k: np.asarray(v)[keep] for k, v in arrays.items()}
     out["next_observations"] = np.asarray(arrays["observations"])[1:][keep[:-1]]
+    before_timeout = np.append(timeouts[1:], False) & ~np.asarray(arrays["terminals"], bool)
+    out["timeouts"] = before_timeout[keep]
     return out
 
 
@@ -205,8 +213,14 @@ def export_minari(dataset: Dataset, dataset_id: str, overwrite: bool = False) ->
     :func:`load_minari` reads it back to the same transitions.
     """
     import gymnasium as gym  # noqa: PLC0415
-    import minari  # noqa: PLC0415
-    from minari.data_collector import EpisodeBuffer  # noqa: PLC0415
+
+    try:
+        import minari  # noqa: PLC0415
+        from minari.data_collector import EpisodeBuffer  # noqa: PLC0415
+    except ImportError:
+        raise DatasetError(
+            "exporting to Minari needs the minari package: pip install 'eabc[minari]'"
+        ) from None
 
     if dataset_id in minari.list_local_datasets():
         if not overwrite:

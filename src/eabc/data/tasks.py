@@ -64,13 +64,14 @@ QUANTILE_LEVEL: dict[tuple[str, str], float] = {
 }
 
 _NAME = re.compile(
-    r"(?P<env>hopper|halfcheetah|walker2d|ant)[-_]"
+    r"(?P<env>hopper|halfcheetah|walker2d|ant)[-_/]"
     r"(?P<kind>medium[-_]replay|medium[-_]expert|random|medium|expert)(?![a-z])"
 )
 
 
 def parse_task(text: str) -> tuple[str, str] | None:
-    """Find ``(env, kind)`` in a dataset name or file name, e.g. ``hopper_medium_replay-v2.hdf5``."""
+    """Find ``(env, kind)`` in a dataset name, file name or Minari id, e.g.
+    ``hopper_medium_replay-v2.hdf5``, ``mujoco/hopper/medium-v0``, ``eabc/hopper/medium-v0``."""
     match = _NAME.search(text.lower())
     if match is None:
         return None
