@@ -160,3 +160,70 @@ def test_diverging_critics_are_reported(tmp_path, pendulum_dataset, capsys):
     # The results store reads the same step from the log (also for unfinished runs).
     assert results.read_run(tmp_path / "zero")[0]["q_out_of_range_step"] == 100
     assert np.isnan(results.read_run(tmp_path / "healthy")[0]["q_out_of_range_step"])
+
+
+def _tensorboard_points(run_dir):
+    from tensorboard.backend.event_processing.event_accumulator import (  # noqa: PLC0415
+        EventAccumulator,
+    )
+
+    events = EventAccumulator(str(run_dir / "tb"), size_guidance={"scalars": 0})
+    events.Reload()
+    points = {t: [(e.step, e.value) for e in events.Scalars(t)] for t in events.Tags()["scalars"]}
+    return points, events
+
+
+def _log_points(run_dir):
+    from eabc.training.logger import read_log  # noqa: PLC0415
+
+    points = {}
+    for row in read_log(run_dir / "log.csv"):
+        for key, text in row.items():
+            if key != "step" and text != "nan":
+                points.setdefault(key, []).append((int(row["step"]), float(text)))
+    return points
+
+
+def assert_tensorboard_equals_log(run_dir):
+    tensorboard, _ = _tensorboard_points(run_dir)
+    log = _log_points(run_dir)
+    assert sorted(tensorboard) == sorted(log)
+    for tag, points in log.items():
+        assert [s for s, _ in tensorboard[tag]] == [s for s, _ in points], tag
+        np.testing.assert_allclose([v for _, v in tensorboard[tag]], [v for _, v in points], 1e-6)
+
+
+def test_tensorboard_keeps_every_point_of_log_csv_through_resumes(
+    tmp_path, pendulum_dataset, monkeypatch
+):
+    """Read back with TensorBoard's own reader: a resume keeps the checkpoint step's point, and
+    resuming a finished run keeps its last one; the run's settings are in the HParams tab."""
+    from tensorboard.plugins.hparams import plugin_data_pb2  # noqa: PLC0415
+
+    run = trainer.start(
+        TrainConfig(**{**SMALL, "algo": "bc", "steps": 400, "eval_interval": 100}),
+        tmp_path / "run",
+        {"hidden_dims": (32, 32)},
+        dataset=pendulum_dataset,
+    )
+    evaluate = trainer.evaluate
+
+    def killed_at_400(run):
+        if run.step == 400:
+            raise KeyboardInterrupt  # after step 300's row, whose checkpoint never came
+        return evaluate(run)
+
+    monkeypatch.setattr(trainer, "evaluate", killed_at_400)
+    with pytest.raises(KeyboardInterrupt):
+        trainer.train(run, progress=False)
+    monkeypatch.undo()
+    assert [p[0] for p in _log_points(tmp_path / "run")["score"]] == [100, 200, 300]
+    trainer.train(trainer.resume(tmp_path / "run", dataset=pendulum_dataset), progress=False)
+    assert_tensorboard_equals_log(tmp_path / "run")  # step 200, the checkpoint, included
+    trainer.train(trainer.resume(tmp_path / "run", dataset=pendulum_dataset), progress=False)
+    assert_tensorboard_equals_log(tmp_path / "run")  # step 400, the final point, kept
+
+    _, events = _tensorboard_points(tmp_path / "run")
+    content = events.PluginTagToContent("hparams")["_hparams_/session_start_info"]
+    hparams = plugin_data_pb2.HParamsPluginData.FromString(content).session_start_info.hparams
+    assert hparams["algo"].string_value == "bc" and hparams["steps"].number_value == 400

@@ -35,8 +35,28 @@ class RunLogger:
         if tensorboard:
             from tensorboardX import SummaryWriter  # noqa: PLC0415
 
-            self.writer = SummaryWriter(str(Path(run_dir) / "tb"), purge_step=resume_step or None)
+            # TensorBoard drops every event at or after purge_step: the rows after the checkpoint
+            # go, the checkpoint's own row (kept in log.csv too) stays.
+            self.writer = SummaryWriter(
+                str(Path(run_dir) / "tb"), purge_step=resume_step + 1 if resume_step else None
+            )
+            if not resume_step:
+                self._write_hparams(Path(run_dir))
         self._write_all()
+
+    def _write_hparams(self, run_dir: Path) -> None:
+        """The run's settings (config.json) for TensorBoard's HParams tab, with its evaluation
+        scalars as the metrics, so that runs compare by setting."""
+        from tensorboardX.summary import hparams  # noqa: PLC0415
+
+        config = read_config_or_none(run_dir)
+        if config is None:
+            return
+        values = {**config.get("train", {}), **config.get("agent", {})}
+        values = {k: _hparam(v) for k, v in values.items() if v is not None}
+        metrics = {key: math.nan for key in ("score", "return_mean")}
+        for summary in hparams(values, metrics):
+            self.writer.file_writer.add_summary(summary)
 
     def log(self, row: dict[str, float]) -> None:
         self.rows.append(row)
@@ -62,6 +82,20 @@ class RunLogger:
     def close(self) -> None:
         if self.writer is not None:
             self.writer.close()
+
+
+def read_config_or_none(run_dir: Path) -> dict | None:
+    import json  # noqa: PLC0415
+
+    try:
+        return json.loads((run_dir / "config.json").read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def _hparam(value):
+    """A setting as TensorBoard's HParams tab takes it: a number, a string or a boolean."""
+    return value if isinstance(value, bool | int | float | str) else str(value)
 
 
 def read_log(path: Path) -> list[dict[str, str]]:
