@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from eabc.cli import main
-from eabc.data.loaders import load_dataset, save_npz
+from eabc.data.loaders import save_npz
+from eabc.data.sources import load_dataset
 
 
 @pytest.fixture

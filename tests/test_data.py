@@ -13,7 +13,8 @@ from minari.data_collector import EpisodeBuffer
 
 from eabc.data import generate, tasks
 from eabc.data.dataset import Dataset, DatasetError, Normalizer
-from eabc.data.loaders import load_dataset, load_file, save_npz
+from eabc.data.loaders import load_file, save_npz
+from eabc.data.sources import load_dataset
 from eabc.evaluation import check_spaces, make_env
 from eabc.training.trainer import resolve_agent_config
 

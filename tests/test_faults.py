@@ -21,7 +21,8 @@ import pytest
 from eabc.agents.validation import SettingError
 from eabc.cli import main
 from eabc.data.dataset import Dataset, DatasetError
-from eabc.data.loaders import load_dataset, save_npz
+from eabc.data.loaders import save_npz
+from eabc.data.sources import load_dataset
 from eabc.experiments import results, sweep
 from eabc.training import checkpoint, logger, trainer
 from eabc.training.checkpoint import CheckpointError

@@ -16,7 +16,7 @@ import pytest
 from eabc import cli, networks
 from eabc.data import generate, zoo
 from eabc.data.loaders import load_file
-from eabc.training import online
+from eabc.training import online, zoo_build
 
 
 @pytest.fixture(scope="module")
@@ -36,7 +36,9 @@ def tiny_zoo(tmp_path_factory):
     )
     run = online.start_sac(config, root / "run")
     online.train_sac(run, progress=False)
-    card = zoo.build(root / "run", "hopper", root / "zoo", episodes=2, medium_return=0.0, log=print)
+    card = zoo_build.build(
+        root / "run", "hopper", root / "zoo", episodes=2, medium_return=0.0, log=print
+    )
     return root / "zoo", card
 
 
@@ -129,7 +131,7 @@ def test_medium_expert_is_medium_then_expert(tiny_zoo, tmp_path):
 
 def test_packed_run_resumes_without_its_replay_buffer(tiny_zoo, tmp_path):
     run_dir = tiny_zoo[0].parent / "run"
-    packed = zoo.pack(run_dir, tmp_path / "packed")
+    packed = zoo_build.pack(run_dir, tmp_path / "packed")
     assert not (packed / online.REPLAY).exists()
     snapshots = sorted((packed / online.SNAPSHOTS).glob("actor_*.npz"))
     assert [p.name for p in snapshots] == sorted(
@@ -137,7 +139,7 @@ def test_packed_run_resumes_without_its_replay_buffer(tiny_zoo, tmp_path):
     )
     # Half-size snapshots, and build() reads them exactly as it reads the float32 originals.
     for name in (snapshots[0].name, snapshots[-1].name):
-        original = zoo._rounded(zoo.load_actor(run_dir / online.SNAPSHOTS / name))
+        original = zoo.rounded(zoo.load_actor(run_dir / online.SNAPSHOTS / name))
         for k, v in zoo.load_actor(packed / online.SNAPSHOTS / name).items():
             np.testing.assert_array_equal(v, original[k])
     # Continue the packed run past its end: it resumes from the checkpoint's networks, refills
@@ -173,7 +175,7 @@ def test_packed_run_resumes_without_its_replay_buffer(tiny_zoo, tmp_path):
 
 def test_refill_during_the_warm_up_uses_uniform_actions(tiny_zoo, tmp_path):
     """A run packed before ``start_steps`` refills with what it would have collected: noise."""
-    packed = zoo.pack(tiny_zoo[0].parent / "run", tmp_path / "packed")
+    packed = zoo_build.pack(tiny_zoo[0].parent / "run", tmp_path / "packed")
     config = json.loads((packed / "config.json").read_text())
     config["sac"]["start_steps"] = 5000
     (packed / "config.json").write_text(json.dumps(config))
@@ -199,7 +201,9 @@ def test_cached_dataset_from_an_older_zoo_is_noticed(tiny_zoo, tmp_path, monkeyp
     assert generate.is_current(expert, "hopper-expert", root)
     # A retrained medium policy makes the cached medium dataset stale, and only that one.
     actor = zoo.load_actor(zoo.policy_path("hopper", "medium", root))
-    zoo._save(zoo.policy_path("hopper", "medium", root), {k: v + 0.01 for k, v in actor.items()})
+    zoo.save_actor(
+        zoo.policy_path("hopper", "medium", root), {k: v + 0.01 for k, v in actor.items()}
+    )
     assert not generate.is_current(medium, "hopper-medium", root)
     assert generate.is_current(expert, "hopper-expert", root)
     assert not generate.is_current(tmp_path / "missing.hdf5", "hopper-expert", root)
@@ -240,7 +244,7 @@ def test_shipped_policy_scores_within_its_card_range(env, which):
     actor = zoo.load_actor(zoo.policy_path(env, which, SHIPPED_ROOT))
     env_id = zoo.tasks.ENVS[env].env_id
     seed = card["evaluation_seed"] + 1
-    returns = [zoo.stochastic_return(env_id, actor, 1, seed + i)[0] for i in range(3)]
+    returns = [zoo_build.stochastic_return(env_id, actor, 1, seed + i)[0] for i in range(3)]
     tolerance = max(2 * entry["return_std"], 0.05 * abs(entry["return_mean"]), 20.0)
     assert abs(np.median(returns) - entry["return_mean"]) <= tolerance, (returns, entry)
 
@@ -255,10 +259,12 @@ def test_rebuilding_the_zoo_keeps_its_medium_policy(tiny_zoo, tmp_path):
     before = {k: zoo.fingerprint("hopper", k, zoo_copy) for k in ("medium", "medium-replay")}
     # Searching again with another target would pick another snapshot ...
     other = [s for s in card["replay"]["snapshots"] if s != card["medium"]["step"]][-1]
-    searched = zoo.build(run_dir, "hopper", tmp_path / "searched", episodes=1, medium_step=other)
+    searched = zoo_build.build(
+        run_dir, "hopper", tmp_path / "searched", episodes=1, medium_step=other
+    )
     assert searched["medium"]["step"] == other
     # ... but the command line keeps the medium policy of the zoo it rebuilds.
-    zoo.main(["build", str(run_dir), "hopper", "--root", str(zoo_copy), "--episodes", "1"])
+    cli.main(["zoo", "build", str(run_dir), "hopper", "--root", str(zoo_copy), "--episodes", "1"])
     rebuilt = zoo.card("hopper", zoo_copy)
     assert rebuilt["medium"]["step"] == card["medium"]["step"]
     assert rebuilt["replay"] == card["replay"]
@@ -271,8 +277,8 @@ def test_expert_is_the_best_of_the_last_snapshots_asked_for(tiny_zoo, tmp_path, 
     zoo_copy = tmp_path / "zoo"
     shutil.copytree(root, zoo_copy)
     steps = sorted(int(p.stem.split("_")[1]) for p in (run_dir / "snapshots").glob("actor_*.npz"))
-    args = ["build", str(run_dir), "hopper", "--root", str(zoo_copy), "--episodes", "1"]
-    zoo.main([*args, "--expert-candidates", str(len(steps))])
+    args = ["zoo", "build", str(run_dir), "hopper", "--root", str(zoo_copy), "--episodes", "1"]
+    cli.main([*args, "--expert-candidates", str(len(steps))])
     measured = {
         int(line.split()[2].rstrip(":")): float(line.split()[4])
         for line in capsys.readouterr().out.splitlines()

@@ -435,6 +435,57 @@ def run_evaluate(cmd: Evaluate) -> dict:
 
 
 @dataclasses.dataclass(frozen=True)
+class ZooBuild:
+    """Choose the medium and expert policies of an `eabc sac` run into the behaviour-policy zoo."""
+
+    run_dir: tyro.conf.Positional[str]
+    """The `eabc sac` run directory (its actor snapshots and log)."""
+    env: tyro.conf.Positional[str]
+    """hopper, halfcheetah or walker2d."""
+    root: str | None = None
+    """Zoo directory (default: the package's, or $EABC_ZOO_DIR)."""
+    episodes: int = 10
+    """Episodes per measured snapshot (sampled actions, as the datasets are made)."""
+    expert_candidates: int = 5
+    """The expert is the best of this many last snapshots."""
+    medium_return: float | None = None
+    """Return the medium policy aims at (default: D4RL's medium level)."""
+    rechoose_medium: bool = False
+    """Search for the medium policy again even if the zoo already has one."""
+
+
+@dataclasses.dataclass(frozen=True)
+class ZooPack:
+    """Copy a SAC run's checkpoint, log and float16 snapshots (no replay buffer) into DEST."""
+
+    run_dir: tyro.conf.Positional[str]
+    dest: tyro.conf.Positional[str]
+
+
+def run_zoo(cmd: ZooBuild | ZooPack) -> None:
+    from eabc.data import zoo  # noqa: PLC0415
+    from eabc.training import zoo_build  # noqa: PLC0415
+
+    if isinstance(cmd, ZooPack):
+        print(zoo_build.pack(cmd.run_dir, cmd.dest))
+        return
+    medium_step = None
+    if (zoo.zoo_dir(cmd.root) / cmd.env / zoo.CARD).exists() and not cmd.rechoose_medium:
+        medium_step = zoo.card(cmd.env, cmd.root)["medium"]["step"]
+        print(f"keeping the zoo's medium policy (step {medium_step}); --rechoose-medium to search")
+    card = zoo_build.build(
+        cmd.run_dir,
+        cmd.env,
+        cmd.root,
+        cmd.episodes,
+        expert_candidates=cmd.expert_candidates,
+        medium_return=cmd.medium_return,
+        medium_step=medium_step,
+    )
+    print(json.dumps({k: card[k] for k in ("expert", "medium")}, indent=2))
+
+
+@dataclasses.dataclass(frozen=True)
 class DataExport:
     """Export a dataset to the local Minari path, for d3rlpy, CORL and other Minari readers."""
 
@@ -451,7 +502,7 @@ class DataExport:
 
 
 def run_data(cmd: DataMake | DataInfo | DataList | DataExport) -> None:
-    from eabc.data import generate, loaders  # noqa: PLC0415
+    from eabc.data import generate, loaders, sources  # noqa: PLC0415
 
     if isinstance(cmd, DataMake):
         path = generate.dataset_path(cmd.name, cmd.cache_dir)
@@ -479,11 +530,11 @@ def run_data(cmd: DataMake | DataInfo | DataList | DataExport) -> None:
                 f"{info['normalized_return']:6.1f} {level:5.0f}  {path}"
             )
     elif isinstance(cmd, DataExport):
-        dataset = loaders.load_dataset(cmd.name, cmd.cache_dir)
+        dataset = sources.load_dataset(cmd.name, cmd.cache_dir)
         dataset_id = cmd.dataset_id or loaders.minari_id(dataset.name)
         print(loaders.export_minari(dataset, dataset_id, overwrite=cmd.force))
     else:
-        dataset = loaders.load_dataset(cmd.name, cmd.cache_dir)
+        dataset = sources.load_dataset(cmd.name, cmd.cache_dir)
         print(json.dumps(generate.describe_dataset(dataset), indent=2))
 
 
@@ -497,6 +548,7 @@ def main(argv: list[str] | None = None) -> None:
         "results": Results,
         "report": Report,
         "data": DataList,
+        "zoo": ZooPack,
     }
     description = "EABC: ensemble-based offline RL with adaptive behaviour cloning."
     if argv[:1] in (["--version"], ["-V"]):
@@ -508,6 +560,13 @@ def main(argv: list[str] | None = None) -> None:
         argv = argv[1:]
         prog = "eabc data"
         description = "Datasets: make the built-in ones, list the cache, describe any dataset, export to Minari."
+    elif argv[:1] == ["zoo"]:  # eabc zoo {build,pack}
+        commands = {"build": ZooBuild, "pack": ZooPack}
+        argv = argv[1:]
+        prog = "eabc zoo"
+        description = (
+            "The behaviour-policy zoo: build an entry from an `eabc sac` run, or pack a run."
+        )
     try:
         cmd = tyro.extras.subcommand_cli_from_dict(
             commands,
@@ -536,6 +595,8 @@ def main(argv: list[str] | None = None) -> None:
             run_results(cmd)
         elif isinstance(cmd, Report):
             run_report(cmd)
+        elif isinstance(cmd, ZooBuild | ZooPack):
+            run_zoo(cmd)
         else:
             run_data(cmd)
     except (ValueError, FileNotFoundError, FileExistsError, RuntimeError) as error:

@@ -16,6 +16,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from eabc.paths import cache_dir
+
 OFF = ("0", "off", "false", "no", "none")
 
 
@@ -35,8 +37,6 @@ def enable(
     if not setting and jax.config.jax_compilation_cache_dir:  # the user's own JAX setting
         return Path(jax.config.jax_compilation_cache_dir)
     if not setting:
-        from eabc.data.generate import cache_dir  # noqa: PLC0415
-
         setting = str(cache_dir(cache_root) / "xla")
     jax.config.update("jax_compilation_cache_dir", setting)
     # Every program, however quick to compile: one run makes a few dozen, ~1 MB in all.

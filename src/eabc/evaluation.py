@@ -1,4 +1,5 @@
-"""Evaluation in Gymnasium: deterministic episodes, D4RL-normalised scores, and space checks."""
+"""Evaluation in Gymnasium: the NumPy policy, deterministic episodes, D4RL-normalised scores, and
+space checks."""
 
 from __future__ import annotations
 
@@ -8,8 +9,26 @@ from collections.abc import Callable
 
 import numpy as np
 
+from eabc import networks
 from eabc.data import tasks
-from eabc.data.dataset import Dataset, DatasetError
+from eabc.data.dataset import Dataset, DatasetError, Normalizer
+
+
+class Policy:
+    """A deterministic policy from raw observations to actions (normalisation inside). NumPy only."""
+
+    def __init__(
+        self,
+        actor: dict[str, np.ndarray],
+        normalizer: Normalizer,
+        max_action: float,
+        gaussian: bool = False,
+    ):
+        self.normalizer = normalizer
+        self._act = networks.numpy_actor(actor, max_action, gaussian)
+
+    def __call__(self, observation: np.ndarray) -> np.ndarray:
+        return self._act(self.normalizer(np.asarray(observation, np.float32)))
 
 
 def make_env(env_id: str):

@@ -1,4 +1,8 @@
-"""Using a trained policy outside the training loop."""
+"""Using a trained policy outside the training loop: :func:`load_policy` reads a run directory.
+
+It sits above the training layer (it reads the training's checkpoints); the policy itself,
+:class:`eabc.evaluation.Policy`, is NumPy only.
+"""
 
 from __future__ import annotations
 
@@ -6,28 +10,11 @@ from pathlib import Path
 
 import numpy as np
 
-from eabc import networks
 from eabc.agents import get_algorithm
 from eabc.data.dataset import Normalizer
+from eabc.evaluation import Policy
 from eabc.training import checkpoint
 from eabc.training.checkpoint import read_config
-
-
-class Policy:
-    """A deterministic policy from raw observations to actions (normalisation inside). NumPy only."""
-
-    def __init__(
-        self,
-        actor: dict[str, np.ndarray],
-        normalizer: Normalizer,
-        max_action: float,
-        gaussian: bool = False,
-    ):
-        self.normalizer = normalizer
-        self._act = networks.numpy_actor(actor, max_action, gaussian)
-
-    def __call__(self, observation: np.ndarray) -> np.ndarray:
-        return self._act(self.normalizer(np.asarray(observation, np.float32)))
 
 
 def load_policy(run_dir: str | Path) -> Policy:

@@ -19,6 +19,7 @@ from tqdm.auto import tqdm
 from eabc.data import tasks
 from eabc.data.dataset import Dataset, DatasetError, concatenate
 from eabc.data.loaders import load_file
+from eabc.paths import cache_dir
 
 FORMAT_VERSION = 2
 """2: policies roll out in float64 (``networks.numpy_mlp``), so that a dataset no longer depends on
@@ -27,12 +28,6 @@ DATASET_SIZE = 1_000_000
 """D4RL's size of the random, medium and expert datasets."""
 
 ActionFn = Callable[[np.ndarray, np.random.Generator], np.ndarray]
-
-
-def cache_dir(override: str | os.PathLike | None = None) -> Path:
-    """Where made datasets live: the argument, else ``$EABC_CACHE_DIR``, else ``~/.cache/eabc``."""
-    root = override or os.environ.get("EABC_CACHE_DIR") or Path.home() / ".cache" / "eabc"
-    return Path(root).expanduser()
 
 
 def builtin_names() -> list[str]:

@@ -1,7 +1,6 @@
 """Reading datasets: D4RL-layout HDF5 files, plain ``.npz`` files and local Minari datasets.
 
-:func:`load_dataset` takes whatever a user types after ``--dataset``: a file path, ``minari:ID`` (or a
-Minari id that exists locally), or a built-in name such as ``hopper-random`` that is made on first use.
+Names (built-in datasets, Minari ids) are resolved one layer up, in :mod:`eabc.data.sources`.
 """
 
 from __future__ import annotations
@@ -18,27 +17,6 @@ from eabc.data import tasks
 from eabc.data.dataset import Dataset, DatasetError
 
 REQUIRED = ("observations", "actions", "rewards", "terminals")
-
-
-def load_dataset(source: str | os.PathLike, cache_dir: str | os.PathLike | None = None) -> Dataset:
-    """Load a dataset from a path, a Minari id or a built-in name (see module docstring)."""
-    text = str(source)
-    path = Path(text).expanduser()
-    if path.suffix in (".hdf5", ".h5", ".npz") or path.exists():
-        return load_file(path)
-    if text.startswith("minari:"):
-        return load_minari(text.removeprefix("minari:"))
-    from eabc.data import generate  # noqa: PLC0415 (generation pulls in gymnasium)
-
-    if text in generate.builtin_names():
-        return generate.load_or_make(text, cache_dir=cache_dir)
-    if "/" in text and _minari_has(text):
-        return load_minari(text)
-    raise DatasetError(
-        f"unknown dataset {text!r}: it is not a file, not a local Minari dataset and not a built-in "
-        f"name. Built-in names: {', '.join(generate.builtin_names())}. For a file give its path "
-        "(.hdf5, .h5 or .npz); for Minari use minari:ID."
-    )
 
 
 def load_file(path: str | os.PathLike) -> Dataset:
@@ -150,7 +128,7 @@ def save_npz(dataset: Dataset, path: str | os.PathLike) -> None:
     np.savez(path, **arrays, **{k: np.asarray(v) for k, v in attrs.items()})
 
 
-def _minari_has(dataset_id: str) -> bool:
+def has_minari(dataset_id: str) -> bool:
     try:
         import minari  # noqa: PLC0415
     except ImportError:

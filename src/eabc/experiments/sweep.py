@@ -454,7 +454,7 @@ def jobs(runs: list[RunSpec], root: Path, layout: str) -> list[list[RunSpec]]:
 
 def execute(job: list[dict], root: str) -> list[dict]:
     """Run one job in this process: start or resume each run, then train (seeds vmapped)."""
-    from eabc.data.loaders import load_dataset  # noqa: PLC0415
+    from eabc.data.sources import load_dataset  # noqa: PLC0415
     from eabc.training import checkpoint, trainer  # noqa: PLC0415
 
     root_path = Path(root)

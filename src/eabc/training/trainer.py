@@ -25,9 +25,8 @@ from eabc.agents import Algorithm, get_algorithm, validation
 from eabc.agents.common import Batch
 from eabc.data import tasks
 from eabc.data.dataset import Dataset, DatasetError, Normalizer
-from eabc.data.loaders import load_dataset
-from eabc.evaluation import Evaluator, check_spaces
-from eabc.policy import Policy
+from eabc.data.sources import load_dataset
+from eabc.evaluation import Evaluator, Policy, check_spaces
 from eabc.training import checkpoint
 from eabc.training.checkpoint import CONFIG, read_config
 from eabc.training.lock import RunLock

@@ -1,0 +1,33 @@
+"""What a user types after ``--dataset``, resolved: a file path, ``minari:ID`` (or a Minari id that
+exists locally), or a built-in name such as ``hopper-random`` that is made on first use.
+
+The top of the data layer: it uses the file readers (:mod:`eabc.data.loaders`) and the generator
+(:mod:`eabc.data.generate`), neither of which knows about the other's names.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from eabc.data import generate, loaders
+from eabc.data.dataset import Dataset, DatasetError
+
+
+def load_dataset(source: str | os.PathLike, cache_dir: str | os.PathLike | None = None) -> Dataset:
+    """Load a dataset from a path, a Minari id or a built-in name (see module docstring)."""
+    text = str(source)
+    path = Path(text).expanduser()
+    if path.suffix in (".hdf5", ".h5", ".npz") or path.exists():
+        return loaders.load_file(path)
+    if text.startswith("minari:"):
+        return loaders.load_minari(text.removeprefix("minari:"))
+    if text in generate.builtin_names():
+        return generate.load_or_make(text, cache_dir=cache_dir)
+    if "/" in text and loaders.has_minari(text):
+        return loaders.load_minari(text)
+    raise DatasetError(
+        f"unknown dataset {text!r}: it is not a file, not a local Minari dataset and not a built-in "
+        f"name. Built-in names: {', '.join(generate.builtin_names())}. For a file give its path "
+        "(.hdf5, .h5 or .npz); for Minari use minari:ID."
+    )
