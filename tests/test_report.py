@@ -252,7 +252,10 @@ def test_write_report_writes_every_file_and_the_table_matches_the_input(results,
         "runs.csv",
         "evaluations.csv",
         "report.md",
+        "report.html",
     }
+    figures_ = {name.removesuffix(".png") for name in expected if name.endswith(".png")}
+    expected |= {f"{name}{suffix}" for name in figures_ for suffix in (".pdf", ".svg")}
     assert set(paths) == expected == {p.name for p in out.iterdir()}
     for name, path in paths.items():
         assert path == out / name and path.stat().st_size > 0
@@ -264,7 +267,11 @@ def test_write_report_writes_every_file_and_the_table_matches_the_input(results,
         mean, std = (float(x) for x in cell.strip("*").split(" ± "))
         assert abs(mean - row["mean"]) <= 0.05 + 1e-9 and abs(std - row["std"]) <= 0.05 + 1e-9
     text = paths["report.md"].read_text()
-    for name in expected - {"report.md", "aggregate.md", "table.md"}:
+    for name in {n for n in expected if not n.endswith((".pdf", ".svg"))} - {
+        "report.md",
+        "aggregate.md",
+        "table.md",
+    }:
         assert f"({name})" in text
     assert paths["table.md"].read_text() in text and "IQM" in text
 
@@ -288,3 +295,72 @@ def test_report_lists_runs_whose_critics_diverged(results, tmp_path):
     assert f"(1 of {len(runs)};" in text
     clean = report.write_report(runs.assign(q_out_of_range_step=np.nan), evaluations, tmp_path)
     assert "left the value range" not in clean["report.md"].read_text()
+
+
+def test_figures_are_print_ready_and_name_the_algorithms_as_the_paper_does(written):
+    from PIL import Image  # noqa: PLC0415
+
+    out, paths = written
+    for name in ("curves", "runtime", "profiles", "ablation_num_critics"):
+        with Image.open(paths[f"{name}.png"]) as image:
+            assert [round(d) for d in image.info["dpi"]] == [300, 300], name
+        assert paths[f"{name}.pdf"].read_bytes()[:5] == b"%PDF-"
+        assert "<svg" in paths[f"{name}.svg"].read_text()[:1000]
+    curves = paths["curves.svg"].read_text()
+    assert "TD3+BC" in curves and "EABC K=5" in curves and ">td3bc<" not in curves
+    header = paths["table.md"].read_text().splitlines()[0]
+    assert header == "| Dataset | TD3+BC | IQL | EABC | EABC K=5 |"
+    assert "TD3+BC" in paths["table.tex"].read_text()
+    assert "<th>TD3+BC</th>" in paths["table.html"].read_text()
+
+
+def test_every_summary_says_what_it_rests_on_and_warns_when_that_is_thin(
+    results, written, tmp_path
+):
+    runs, evaluations = results
+    text = written[1]["report.md"].read_text()
+    per_run = evaluations.groupby("run_id").size().iloc[0]
+    assert f"mean of its last {min(per_run, 10)} evaluations" in text
+    assert f"over {len(SEEDS)} runs (seeds)" in text and "Warning" not in text
+    assert "median steps/s over its training chunks" in text
+
+    # Two seeds of TD3+BC on one dataset, five evaluations each: said, and warned about.
+    few = runs[
+        ~(
+            (runs["algo"] == "td3bc")
+            & (runs["seed"] >= 2)
+            & (runs["dataset"] == runs["dataset"].iloc[0])
+        )
+    ]
+    last5 = evaluations[evaluations["step"] >= sorted(evaluations["step"].unique())[-5]]
+    text = report.write_report(few, last5, tmp_path / "few")["report.md"].read_text()
+    assert "mean of its last 5 evaluations" in text and "over 2-3 runs (seeds)" in text
+    assert "**Warning:** TD3+BC rest on fewer than 3 runs" in text
+
+
+def test_the_html_report_is_a_standalone_styled_page(written):
+    out, paths = written
+    page = paths["report.html"].read_text()
+    assert page.startswith("<!DOCTYPE html>") and "<style>" in page and "</html>" in page
+    assert '<img src="curves.svg"' in page and '<table class="scores">' in page
+    assert "<th>TD3+BC</th>" in page and "http" not in page  # no external resources
+    assert paths["table.html"].read_text().startswith("<!DOCTYPE html>")
+
+
+def test_a_runs_speed_is_the_median_of_its_training_chunks(tmp_path):
+    """The first chunk after a start or resume compiles; whole-run steps/s would count it."""
+    import json  # noqa: PLC0415
+
+    from eabc.experiments import results as store  # noqa: PLC0415
+
+    run = tmp_path / "run"
+    run.mkdir()
+    train = {"dataset": "hopper-medium", "algo": "td3bc", "seed": 0, "steps": 4000}
+    (run / "config.json").write_text(json.dumps({"train": train}))
+    rates = [4.0, 290.0, 300.0, 3.0, 280.0]  # two compiling chunks (start, resume)
+    rows = [f"{1000 * (i + 1)},{1000 / r:.6f},{r}" for i, r in enumerate(rates)]
+    (run / "log.csv").write_text("step,wall_time,steps_per_s\n" + "\n".join(rows) + "\n")
+    row, _ = store.read_run(run)
+    assert row["steps_per_s"] == 280.0
+    table = report.runtime_table(pd.DataFrame([row]))
+    assert table.at["td3bc", "mean"] == pytest.approx(1e6 / 280.0 / 3600)

@@ -24,6 +24,7 @@ from eabc.experiments.report import (
     _missing,
     _require,
     dataset_sort_key,
+    display_name,
     runtime_table,
     task_scores,
 )
@@ -65,10 +66,19 @@ def _colors(keys: Sequence[str]) -> dict[str, tuple]:
     return {key: cmap(i % cmap.N) for i, key in enumerate(keys)}
 
 
+PRINT_DPI = 300
+"""PNG resolution: print quality; the PDF and SVG beside each PNG are vector graphics."""
+VECTOR_FORMATS = (".pdf", ".svg")
+
+
 def _save(fig, path: str | Path) -> Path:
+    """The figure as ``path`` (PNG at print resolution) and as PDF and SVG beside it."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
+    fig.savefig(path, dpi=PRINT_DPI)
+    for suffix in VECTOR_FORMATS:
+        undated = {"Date": None} if suffix == ".svg" else {"CreationDate": None}  # reproducible
+        fig.savefig(path.with_suffix(suffix), metadata=undated)
     return path
 
 
@@ -84,7 +94,9 @@ def _curve_stats(runs: pd.DataFrame, evaluations: pd.DataFrame, by: str) -> pd.D
     return stats.reset_index().fillna({"std": 0.0})
 
 
-def _plot_curves(stats: pd.DataFrame, by: str, keys: list[str], path, title: str) -> Path:
+def _plot_curves(
+    stats: pd.DataFrame, by: str, keys: list[str], path, title: str, names=str
+) -> Path:
     from matplotlib.ticker import EngFormatter  # noqa: PLC0415
 
     datasets = sorted(stats["dataset"].unique(), key=dataset_sort_key)
@@ -97,7 +109,7 @@ def _plot_curves(stats: pd.DataFrame, by: str, keys: list[str], path, title: str
                 continue
             curve = curve.sort_values("step")
             x, m, s = curve["step"].to_numpy(), curve["mean"].to_numpy(), curve["std"].to_numpy()
-            (handles[key],) = ax.plot(x, m, color=colors[key], label=key, lw=1.5)
+            (handles[key],) = ax.plot(x, m, color=colors[key], label=names(key), lw=1.5)
             ax.fill_between(x, m - s, m + s, color=colors[key], alpha=0.2, lw=0)
         ax.set_title(dataset)
         ax.set_xlabel("gradient steps")
@@ -111,7 +123,10 @@ def _plot_curves(stats: pd.DataFrame, by: str, keys: list[str], path, title: str
     ordered = [k for k in keys if k in handles]
     if ordered:
         fig.legend(
-            [handles[k] for k in ordered], ordered, loc="lower center", ncol=min(6, len(ordered))
+            [handles[k] for k in ordered],
+            [names(k) for k in ordered],
+            loc="lower center",
+            ncol=min(6, len(ordered)),
         )
     fig.suptitle(title)
     return _save(fig, path)
@@ -125,7 +140,7 @@ def plot_learning_curves(runs: pd.DataFrame, evaluations: pd.DataFrame, path: st
     runs = _labelled(runs)
     stats = _curve_stats(runs, evaluations, "label")
     title = "Learning curves: mean ± 1 std over seeds"
-    return _plot_curves(stats, "label", _labels(runs), path, title)
+    return _plot_curves(stats, "label", _labels(runs), path, title, names=display_name)
 
 
 def _value_key(value):
@@ -218,7 +233,8 @@ def plot_ablation(
     sub = sub.assign(key=[_value_label(parameter, v) for v in sub["value"]])
     stats = _curve_stats(sub, evaluations, "key")
     keys = [_value_label(parameter, v) for v in values]
-    return _plot_curves(stats, "key", keys, path, f"Ablation of {parameter} ({algo})")
+    title = f"Ablation of {parameter} ({display_name(algo)})"
+    return _plot_curves(stats, "key", keys, path, title)
 
 
 def plot_runtime(runs: pd.DataFrame, path: str | Path) -> Path:
@@ -235,13 +251,19 @@ def plot_runtime(runs: pd.DataFrame, path: str | Path) -> Path:
     means = table["mean"].to_numpy() * scale
     errors = table["std"].fillna(0.0).to_numpy() * scale
     colors = _colors(labels)
-    ax.bar(labels, means, yerr=errors, capsize=4, color=[colors[k] for k in labels])
+    ax.bar(
+        [display_name(k) for k in labels],
+        means,
+        yerr=errors,
+        capsize=4,
+        color=[colors[k] for k in labels],
+    )
     top = max(means + errors, default=1.0)
     for x, m, e in zip(range(len(labels)), means, errors):
         ax.text(x, m + e + 0.02 * top, f"{m:.2g}", ha="center", va="bottom", fontsize="small")
     ax.set_ylim(0, 1.15 * top)
-    ax.set_ylabel(f"wall-clock {unit} per 1M gradient steps")
-    ax.set_title("Runtime: mean ± std over runs")
+    ax.set_ylabel(f"{unit} per 1M gradient steps")
+    ax.set_title("Runtime from training chunks' steps/s: mean ± std over runs", fontsize="medium")
     for tick in ax.get_xticklabels():
         tick.set(rotation=30, ha="right")
     if not labels:
@@ -270,7 +292,7 @@ def plot_performance_profiles(
         low, high = stratified_bootstrap_ci(
             task_list, lambda draws: _profile_batched(draws, taus), reps, seed=seed, batched=True
         )
-        ax.step(taus, profile, where="post", color=colors[label], label=label)
+        ax.step(taus, profile, where="post", color=colors[label], label=display_name(label))
         ax.fill_between(taus, low, high, step="post", color=colors[label], alpha=0.2, lw=0)
     ax.set_xlabel("normalised score τ")
     ax.set_ylabel("fraction of runs with score > τ")

@@ -43,6 +43,15 @@ PESSIMISM_ORDER = ("mean-std", "min", "min2")
 PAPER_DEFAULTS = {"num_critics": 10.0, "pessimism": "mean-std"}
 """EABC's defaults (p comes from Table 3 per dataset): what an ablation holds fixed."""
 AVERAGE = "Average"
+DISPLAY_NAMES = {
+    "bc": "BC", "td3": "TD3", "td3bc": "TD3+BC", "cql": "CQL", "cql-lagrange": "CQL-Lagrange",
+    "iql": "IQL", "wpc": "wPC", "sac-n": "SAC-N", "edac": "EDAC", "edac-10": "EDAC-10",
+    "eabc": "EABC", "eabc-quantile": "EABC-quantile", "eabc-auto": "EABC-auto",
+    "eabc-robust": "EABC-robust", "bear": "BEAR", "uwac": "UWAC", "mopo": "MOPO", "morel": "MOReL",
+}  # fmt: skip
+"""The paper's names of the algorithms (and the sources' for the others), for tables and figures."""
+MIN_RUNS = 3
+"""Fewer runs per dataset than this and a bootstrap interval or a std says little: flagged."""
 
 
 # ----------------------------------------------------------------------------------------------
@@ -53,6 +62,14 @@ def algo_label(algo: str, variant: str | None = "") -> str:
     """``algo`` plus its variant when it has one, e.g. ``eabc K=5``."""
     variant = "" if _missing(variant) else str(variant).strip()
     return f"{algo} {variant}" if variant else str(algo)
+
+
+def display_name(label: str) -> str:
+    """A label as a reader of the paper knows it: ``td3bc`` -> ``TD3+BC``, ``eabc K=5`` ->
+    ``EABC K=5`` (a variant keeps its settings); unknown algorithms keep their id."""
+    algo, _, variant = str(label).partition(" ")
+    name = DISPLAY_NAMES.get(algo, algo)
+    return f"{name} {variant}" if variant else name
 
 
 def dataset_sort_key(name: str) -> tuple:
@@ -169,7 +186,7 @@ def to_markdown(table: pd.DataFrame) -> str:
     """A Markdown table of ``mean ± std`` (one decimal), the best mean of each row in bold."""
     escape = lambda text: text.replace("|", "\\|")
     lines = [
-        "| " + " | ".join(["Dataset", *map(escape, _columns(table))]) + " |",
+        "| " + " | ".join(["Dataset", *(escape(display_name(c)) for c in _columns(table))]) + " |",
         "|" + "---|" + ":---:|" * len(_columns(table)),
     ]
     for name, cells in _cells(table, "±", "–"):
@@ -180,7 +197,8 @@ def to_markdown(table: pd.DataFrame) -> str:
 
 def to_html(table: pd.DataFrame) -> str:
     """An HTML ``<table>`` of ``mean ± std``, the best mean of each row in ``<b>``."""
-    head = "".join(f"<th>{html.escape(c)}</th>" for c in ["Dataset", *_columns(table)])
+    names = ["Dataset", *map(display_name, _columns(table))]
+    head = "".join(f"<th>{html.escape(c)}</th>" for c in names)
     body = []
     for name, cells in _cells(table, "&plusmn;", "&ndash;"):
         tds = "".join(f"<td><b>{t}</b></td>" if best else f"<td>{t}</td>" for t, best in cells)
@@ -204,7 +222,7 @@ def to_latex(table: pd.DataFrame) -> str:
         "% needs \\usepackage{booktabs}",
         "\\begin{tabular}{l" + "c" * len(columns) + "}",
         "\\toprule",
-        " & ".join(["Dataset", *map(_latex_escape, columns)]) + " \\\\",
+        " & ".join(["Dataset", *(_latex_escape(display_name(c)) for c in columns)]) + " \\\\",
         "\\midrule",
     ]
     for name, cells in _cells(table, "$\\pm$", "--"):
@@ -239,7 +257,9 @@ def _runtime_markdown(table: pd.DataFrame) -> str:
     lines = ["| Algorithm | Runs | Hours per 1M steps |", "|---|---:|:---:|"]
     for label, row in table.iterrows():
         std = 0.0 if math.isnan(row["std"]) else row["std"]
-        lines.append(f"| {label} | {int(row['runs'])} | {row['mean']:.2f} ± {std:.2f} |")
+        lines.append(
+            f"| {display_name(label)} | {int(row['runs'])} | {row['mean']:.2f} ± {std:.2f} |"
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -290,7 +310,9 @@ def aggregate_to_markdown(table: pd.DataFrame, alpha: float = 0.05) -> str:
     for label, row in table.iterrows():
         cells = [f"{row[n]:.1f} [{row[n + '_low']:.1f}, {row[n + '_high']:.1f}]" for n in names]
         lines.append(
-            f"| {label} | {int(row['tasks'])} | {int(row['runs'])} | " + " | ".join(cells) + " |"
+            f"| {display_name(label)} | {int(row['tasks'])} | {int(row['runs'])} | "
+            + " | ".join(cells)
+            + " |"
         )
     note = (
         f"\nPoint estimates with {100 * (1 - alpha):g}% stratified-bootstrap confidence intervals "
@@ -361,7 +383,8 @@ def stability_to_markdown(table: pd.DataFrame) -> str:
             f" ± {r.score_std:.1f}" if np.isfinite(r.score_std) else ""
         )
         lines.append(
-            f"| {r.dataset} | {r.label} | {r.runs} | {score} | {r.out_of_range}/{r.runs} | "
+            f"| {r.dataset} | {display_name(r.label)} | {r.runs} | {score} | "
+            f"{r.out_of_range}/{r.runs} | "
             f"{fmt(r.first_out_of_range_step, '{:,.0f}')} | {fmt(r.q_mean_max, '{:,.0f}')} | "
             f"{fmt(r.policy_spread, '{:.2%}')} | {fmt(r.bc_fraction, '{:.2f}')} |"
         )
@@ -376,6 +399,51 @@ def _diverged_runs(runs: pd.DataFrame) -> list[str]:
     return [f"`{r}` (step {int(s):,})" for r, s in zip(hit["run_id"], hit["q_out_of_range_step"])]
 
 
+def _span(values, unit: str) -> str:
+    """``5 evaluations`` or ``2-5 evaluations``."""
+    low, high = min(values), max(values)
+    plural = unit if high == 1 else unit + "s"
+    return f"{low} {plural}" if low == high else f"{low}-{high} {plural}"
+
+
+def evidence(runs: pd.DataFrame, evaluations: pd.DataFrame, table: pd.DataFrame) -> str:
+    """What Table 1's cells rest on: evaluations per run score and runs (seeds) per cell."""
+    from eabc.training.trainer import FINAL_EVALUATIONS  # noqa: PLC0415
+
+    scored = evaluations[np.isfinite(evaluations["score"].astype(float))]
+    counts = scored.groupby("run_id").size().reindex(runs["run_id"], fill_value=0)
+    used = [min(int(n), FINAL_EVALUATIONS) for n in counts if n > 0] or [0]
+    cells = table.xs("runs", axis=1, level="stat").drop(index=AVERAGE)
+    per_cell = [int(n) for n in cells.to_numpy().ravel() if n > 0] or [0]
+    return (
+        f"each run's score is the mean of its last {_span(used, 'evaluation')} (at most "
+        f"{FINAL_EVALUATIONS}); each cell's mean ± std is over {_span(per_cell, 'run')} (seeds)"
+    )
+
+
+def thin_evidence(table: pd.DataFrame) -> list[str]:
+    """The labels with a dataset of fewer than :data:`MIN_RUNS` runs (as display names)."""
+    cells = table.xs("runs", axis=1, level="stat").drop(index=AVERAGE)
+    thin = [c for c in cells.columns if ((cells[c] > 0) & (cells[c] < MIN_RUNS)).any()]
+    return [display_name(c) for c in thin]
+
+
+def _warning(thin: list[str]) -> str:
+    return (
+        f"**Warning:** {', '.join(thin)} rest on fewer than {MIN_RUNS} runs on some dataset: "
+        "their std and the bootstrap intervals below say little there; run more seeds.\n"
+    )
+
+
+RUNTIME_NOTE = (
+    "Hours per 1M gradient steps = 10^6 / each run's median steps/s over its training chunks "
+    "(log.csv's `steps_per_s`: the compiled update steps only, without evaluation, checkpoints "
+    "or logging; the median leaves out the chunks that compiled the program), mean ± std over "
+    "runs, on the machine and under the load each run had. `benchmarks/algorithms.py` measures "
+    "the same on a quiet machine."
+)
+
+
 def write_report(
     runs: pd.DataFrame, evaluations: pd.DataFrame, out_dir: str | Path
 ) -> dict[str, Path]:
@@ -383,7 +451,8 @@ def write_report(
 
     Writes ``table.{md,html,tex}``, ``aggregate.md``, ``curves.png``, ``profiles.png``,
     ``runtime.png``, ``ablation_PARAMETER.png`` for each parameter that some algorithm's runs vary
-    (EABC's first) and ``report.md``. Returns the paths by file name.
+    (EABC's first; every figure also as ``.pdf`` and ``.svg``), ``report.md`` and ``report.html``
+    (a standalone page). Returns the paths by file name.
     """
     from eabc.experiments import figures  # noqa: PLC0415 (figures imports this module)
 
@@ -401,7 +470,7 @@ def write_report(
     write("stability.md", stability)
     write("runs.csv", runs.drop(columns=["config"], errors="ignore").to_csv(index=False))
     write("evaluations.csv", evaluations.to_csv(index=False))
-    write("table.html", to_html(table) + "\n")
+    write("table.html", html_page("Scores (Table 1)", to_html(table)))
     write("table.tex", to_latex(table))
     aggregate = aggregate_to_markdown(aggregate_table(runs))
     write("aggregate.md", aggregate)
@@ -415,6 +484,11 @@ def write_report(
             paths[name] = figures.plot_ablation(runs, evaluations, parameter, out / name, algo)
             ablations.append(f"### {parameter} ({algo})\n\n![{parameter}]({name})\n")
     paths["runtime.png"] = figures.plot_runtime(runs, out / "runtime.png")
+    for name in [n for n in paths if n.endswith(".png")]:
+        for suffix in figures.VECTOR_FORMATS:
+            paths[name.removesuffix(".png") + suffix] = out / (name.removesuffix(".png") + suffix)
+    basis = evidence(runs, evaluations, table)
+    thin = thin_evidence(table)
 
     status = runs["status"] if "status" in runs else pd.Series("done", index=runs.index)
     partial = runs[status == "partial"]
@@ -435,9 +509,11 @@ def write_report(
         )
     sections += [
         "## Scores (Table 1)\n",
-        "D4RL-normalised score of each run (mean of its last 10 evaluations): mean ± std over "
-        "seeds; best mean per row in bold; the Average row averages the per-dataset means and "
-        "stds. Also as [HTML](table.html) and [LaTeX](table.tex).\n",
+        f"D4RL-normalised score: {basis}; best mean per row in bold; the Average row averages "
+        "the per-dataset means and stds. Also as [HTML](table.html) and [LaTeX](table.tex); "
+        "the whole report as a page: [report.html](report.html). Figures as PNG (300 dpi), "
+        "PDF and SVG.\n",
+        *([_warning(thin)] if thin else []),
         to_markdown(table),
         "## Stability: where the critics fail\n",
         "Per dataset and algorithm: runs whose mean Q left the range the rewards allow, the "
@@ -448,14 +524,99 @@ def write_report(
         "[evaluations.csv](evaluations.csv).\n",
         stability,
         "## Aggregate statistics\n",
+        *([_warning(thin)] if thin else []),
         aggregate,
         "![Performance profiles](profiles.png)\n",
         "## Learning curves (Figure 1)\n",
         "![Learning curves](curves.png)\n",
         *(["## Ablations (Figures 2-4)\n", *ablations] if ablations else []),
         "## Runtime (Figure 5)\n",
+        RUNTIME_NOTE + "\n",
         _runtime_markdown(runtime_table(runs)),
         "![Runtime](runtime.png)\n",
     ]
     write("report.md", "\n".join(sections))
+    write("report.html", report_page(sections, table))
     return paths
+
+
+STYLE = """
+body { font: 15px/1.5 -apple-system, "Segoe UI", Helvetica, Arial, sans-serif; color: #222;
+       max-width: 72rem; margin: 2rem auto; padding: 0 1.5rem; }
+h1 { font-size: 1.7rem; border-bottom: 2px solid #333; padding-bottom: .3rem; }
+h2 { font-size: 1.25rem; margin-top: 2.2rem; border-bottom: 1px solid #ccc; }
+table { border-collapse: collapse; margin: 1rem 0; font-variant-numeric: tabular-nums; }
+th, td { padding: .3rem .7rem; text-align: center; }
+thead th { border-top: 2px solid #333; border-bottom: 1px solid #333; }
+tbody tr:last-child th, tbody tr:last-child td { border-bottom: 2px solid #333; }
+tbody th { text-align: left; font-weight: normal; }
+tbody tr:nth-child(even) { background: #f6f6f6; }
+td b { color: #0b4f9c; }
+.note { color: #555; font-size: .92rem; }
+.warning { background: #fff4e0; border-left: 4px solid #e69500; padding: .5rem .8rem; }
+figure { margin: 1.2rem 0; } figure img { max-width: 100%; border: 1px solid #eee; }
+figcaption { color: #555; font-size: .9rem; }
+"""
+
+
+def html_page(title: str, body: str) -> str:
+    """A standalone HTML page (its own style sheet, no external resources) around ``body``."""
+    return (
+        '<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n'
+        f"<title>{html.escape(title)}</title>\n<style>{STYLE}</style>\n</head>\n<body>\n"
+        f"<h1>{html.escape(title)}</h1>\n{body}\n</body>\n</html>\n"
+    )
+
+
+def _markdown_table_html(text: str) -> str:
+    """A Markdown table (as this module writes them) as an HTML table."""
+    rows = [line.strip().strip("|").split(" | ") for line in text.strip().splitlines()]
+    rows = [r for i, r in enumerate(rows) if i != 1]  # the |---| line
+    cell = lambda t: re.sub(r"\*\*(.+?)\*\*", r"<b>\1</b>", html.escape(t.strip()))
+    head = "".join(f"<th>{cell(t)}</th>" for t in rows[0])
+    body = "".join(
+        "<tr>" + f"<th>{cell(r[0])}</th>" + "".join(f"<td>{cell(t)}</td>" for t in r[1:]) + "</tr>"
+        for r in rows[1:]
+    )
+    return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
+
+
+def report_page(sections: list[str], table: pd.DataFrame) -> str:
+    """``report.md``'s content as one styled page: tables as tables, figures as SVG."""
+    parts = []
+    blocks = [b.strip() for section in sections[1:] for b in re.split(r"\n\s*\n", section)]
+    for text in filter(None, blocks):  # sections[0] is report.md's title
+        if text.startswith("#"):
+            level = len(text) - len(text.lstrip("#"))
+            parts.append(f"<h{level}>{html.escape(text[level:].strip())}</h{level}>")
+        elif text.startswith("!["):
+            parts.extend(_figures_html(text))
+        elif text.startswith("|"):
+            header = text.splitlines()[0]
+            table1 = header.startswith("| Dataset |") and "| Algorithm |" not in header
+            parts.append(to_html(table) if table1 else _markdown_table_html(text))
+        elif text.startswith("**Warning:**"):
+            parts.append(f'<p class="warning">{_inline(text)}</p>')
+        else:
+            parts.append(f'<p class="note">{_inline(text)}</p>')
+    return html_page("Experiment report", "\n".join(parts))
+
+
+def _figures_html(text: str) -> list[str]:
+    out = []
+    for alt, target in re.findall(r"!\[([^\]]*)\]\(([^)]+)\)", text):
+        vector = target.removesuffix(".png") + ".svg"
+        out.append(
+            f'<figure><a href="{html.escape(target)}"><img src="{html.escape(vector)}" '
+            f'alt="{html.escape(alt)}"></a><figcaption>{html.escape(alt)} (<a '
+            f'href="{html.escape(target.removesuffix(".png"))}.pdf">PDF</a>)</figcaption></figure>'
+        )
+    return out
+
+
+def _inline(text: str) -> str:
+    """Markdown's bold, code and links in one paragraph, as HTML."""
+    text = html.escape(text)
+    text = re.sub(r"\*\*(.+?)\*\*", r"<b>\1</b>", text)
+    text = re.sub(r"`([^`]+)`", r"<code>\1</code>", text)
+    return re.sub(r"\[([^\]]+)\]\(([^)]+)\)", r'<a href="\2">\1</a>', text)

@@ -5,7 +5,9 @@
 - ``runs``: one row per run directory: ``run_id, run_dir, dataset, env, kind, algo, seed,
   variant`` and the algorithm settings (``num_critics, confidence_level, pessimism``), then
   ``status`` (done, partial, diverged: stopped on NaN/inf, or broken: its config.json or log.csv
-  cannot be read, with why in ``config``), ``steps``, ``steps_target``, ``wall_time_s``, ``steps_per_s``,
+  cannot be read, with why in ``config``), ``steps``, ``steps_target``, ``wall_time_s`` (time in
+  training chunks), ``steps_per_s`` (the median of log.csv's per-chunk steps/s: update steps
+  only, no evaluation, no compilation outliers),
   ``final_score`` and ``final_return`` (means over the last 10 evaluations),
   ``q_out_of_range_step`` (the first logged step where the critics' mean Q left the range the
   rewards allow, a sign of divergence; empty if it never did or the log predates the check),
@@ -83,12 +85,14 @@ def _read_run(run_dir: Path, run_id: str, config: dict) -> tuple[dict, list[dict
     task = tasks.parse_task(dataset)
     evaluations, last_row, out_of_range = [], {}, math.nan
     q_max = math.nan  # the largest mean Q any logged chunk reached
+    rates = []  # each training chunk's steps/s (no evaluation, no checkpoint)
     log = run_dir / LOG
     if log.exists():
         with open(log, newline="") as f:
             for row in csv.DictReader(f):
                 last_row = row
                 q_max = _max(q_max, _num(row.get("q_mean")))
+                rates.append(_num(row.get("steps_per_s")))
                 if _num(row.get("q_out_of_range")) == 1.0 and math.isnan(out_of_range):
                     out_of_range = int(float(row["step"]))
                 # An evaluation row has a return; "nan" cells (which resumes of older versions
@@ -122,7 +126,7 @@ def _read_run(run_dir: Path, run_id: str, config: dict) -> tuple[dict, list[dict
         "steps": steps,
         "steps_target": int(train["steps"]),
         "wall_time_s": wall,
-        "steps_per_s": steps / wall if wall and wall > 0 else math.nan,
+        "steps_per_s": _median(rates),
         "final_score": _mean([e["score"] for e in last]),
         "final_return": _mean([e["return_mean"] for e in last]),
         "q_out_of_range_step": out_of_range,
@@ -146,6 +150,16 @@ def _max(a: float, b: float) -> float:
 
 def _num(text) -> float:
     return float(text) if text not in (None, "") else math.nan
+
+
+def _median(values: list[float]) -> float:
+    """The median of the finite values (NaN if none): a run's speed from its chunks' speeds, not
+    thrown off by the chunks that compiled the program (after every start or resume)."""
+    values = sorted(v for v in values if math.isfinite(v))
+    if not values:
+        return math.nan
+    middle = len(values) // 2
+    return values[middle] if len(values) % 2 else (values[middle - 1] + values[middle]) / 2
 
 
 def _mean(values: list[float]) -> float:
