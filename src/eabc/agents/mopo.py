@@ -127,8 +127,9 @@ PRESETS: dict[str, MOPOConfig] = {"mopo": MOPOConfig()}
 
 TASK_SETTINGS: dict[tuple[str, str], dict[str, float]] = {
     # examples/config/d4rl/<env>_<kind>.py: rollout_length and penalty_coeff ("mixed" is D4RL's
-    # medium-replay). Read there: hopper/halfcheetah medium, walker2d medium-expert; the others
-    # as given in the MOPO paper's appendix table of hyperparameters.
+    # medium-replay). Checked against the files: hopper-medium, halfcheetah-medium and
+    # walker2d-medium-expert; the other nine are from the MOPO paper's hyperparameter table as
+    # remembered, NOT yet checked against the config files.
     ("halfcheetah", "random"): {"rollout_length": 5, "penalty_coeff": 0.5},
     ("halfcheetah", "medium"): {"rollout_length": 1, "penalty_coeff": 1.0},
     ("halfcheetah", "medium-replay"): {"rollout_length": 5, "penalty_coeff": 1.0},
