@@ -271,6 +271,16 @@ class Report:
     """Output directory (default ROOT/report)."""
 
 
+@dataclasses.dataclass(frozen=True)
+class ExportPolicy:
+    """Write a run's policy (the latest checkpoint's actor, observation normaliser inside) as ONNX,
+    to run without Python or JAX (onnxruntime, ONNX Runtime Web, TensorRT, ...)."""
+
+    run_dir: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="RUN_DIR")]
+    onnx: str
+    """The ONNX file to write (input observation [batch, obs_dim], output action)."""
+
+
 def sweep_spec(cmd: Sweep) -> dict:
     from eabc.experiments import sweep  # noqa: PLC0415
 
@@ -547,6 +557,7 @@ def main(argv: list[str] | None = None) -> None:
         "sweep": Sweep,
         "results": Results,
         "report": Report,
+        "export-policy": ExportPolicy,
         "data": DataList,
         "zoo": ZooPack,
     }
@@ -595,6 +606,10 @@ def main(argv: list[str] | None = None) -> None:
             run_results(cmd)
         elif isinstance(cmd, Report):
             run_report(cmd)
+        elif isinstance(cmd, ExportPolicy):
+            from eabc import deploy  # noqa: PLC0415
+
+            print(deploy.export_onnx(cmd.run_dir, cmd.onnx))
         elif isinstance(cmd, ZooBuild | ZooPack):
             run_zoo(cmd)
         else:
