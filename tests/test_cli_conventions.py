@@ -62,3 +62,16 @@ def test_results_on_a_missing_or_empty_root_say_so_in_one_line(tmp_path, capsys)
         main(["results", str(tmp_path / "nothing")])
     main(["results", str(tmp_path)])
     assert capsys.readouterr().out == f"no runs under {tmp_path}\n"
+
+
+def test_a_missing_extra_is_one_line_that_names_it(monkeypatch, pendulum_dataset):
+    from eabc.data.dataset import DatasetError  # noqa: PLC0415
+    from eabc.data.loaders import export_minari  # noqa: PLC0415
+    from eabc.experiments import sweep  # noqa: PLC0415
+
+    monkeypatch.setitem(sys.modules, "ray", None)  # as if not installed
+    monkeypatch.setitem(sys.modules, "minari", None)
+    with pytest.raises(RuntimeError, match=r"pip install 'eabc\[ray\]'"):
+        sweep.run_ray([], "root")
+    with pytest.raises(DatasetError, match=r"pip install 'eabc\[minari\]'"):
+        export_minari(pendulum_dataset, "test/pendulum/x-v0")
