@@ -245,7 +245,7 @@ def plot_runtime(runs: pd.DataFrame, path: str | Path) -> Path:
     table = runtime_table(runs)
     minutes = len(table) > 0 and table["mean"].max() < 1.0
     scale, unit = (60.0, "minutes") if minutes else (1.0, "hours")
-    fig, axes = _new_figure(1, (max(4.0, 0.9 * len(table) + 1.5), 3.0), bottom=0.9, top=0.4)
+    fig, axes = _new_figure(1, (max(4.0, 0.9 * len(table) + 1.5), 3.0), bottom=0.9, top=0.6)
     ax = axes[0]
     labels = list(table.index)
     means = table["mean"].to_numpy() * scale
@@ -263,7 +263,7 @@ def plot_runtime(runs: pd.DataFrame, path: str | Path) -> Path:
         ax.text(x, m + e + 0.02 * top, f"{m:.2g}", ha="center", va="bottom", fontsize="small")
     ax.set_ylim(0, 1.15 * top)
     ax.set_ylabel(f"{unit} per 1M gradient steps")
-    ax.set_title("Runtime from training chunks' steps/s: mean ± std over runs", fontsize="medium")
+    ax.set_title("Runtime: mean ± std over runs\n(training chunks' steps/s)", fontsize="medium")
     for tick in ax.get_xticklabels():
         tick.set(rotation=30, ha="right")
     if not labels:

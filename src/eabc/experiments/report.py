@@ -482,7 +482,7 @@ def write_report(
         if algo is not None:
             name = f"ablation_{parameter}.png"
             paths[name] = figures.plot_ablation(runs, evaluations, parameter, out / name, algo)
-            ablations.append(f"### {parameter} ({algo})\n\n![{parameter}]({name})\n")
+            ablations.append(f"### {parameter} ({display_name(algo)})\n\n![{parameter}]({name})\n")
     paths["runtime.png"] = figures.plot_runtime(runs, out / "runtime.png")
     for name in [n for n in paths if n.endswith(".png")]:
         for suffix in figures.VECTOR_FORMATS:
