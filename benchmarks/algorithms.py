@@ -29,21 +29,16 @@ SLOW = ("edac", "uwac")
 
 
 def agent(algo: str, steps_total: int = 1_000_000):
-    import dataclasses
 
     import jax
 
     from eabc.agents import get_algorithm
 
     algorithm = get_algorithm(algo)
-    config = algorithm.preset
-    fields = {f.name for f in dataclasses.fields(config)}
-    if "confidence_level" in fields and algo == "eabc":
-        config = dataclasses.replace(config, confidence_level=0.5)
-    if "total_steps" in fields:
-        config = dataclasses.replace(config, total_steps=steps_total)
-    state = algorithm.module.init(jax.random.PRNGKey(0), OBS_DIM, ACT_DIM, config)
-    update = functools.partial(algorithm.module.update, config=config, max_action=1.0)
+    # The settings a run on hopper-medium gets (Table 3's p, IQL's schedule over the run, ...).
+    config = algorithm.resolved(algorithm.preset, "hopper-medium", steps_total, set())
+    state = algorithm.init(jax.random.PRNGKey(0), OBS_DIM, ACT_DIM, config)
+    update = functools.partial(algorithm.update, config=config, max_action=1.0)
     return state, update
 
 

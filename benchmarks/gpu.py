@@ -170,7 +170,7 @@ def main() -> None:
     import machine
 
     if args.smoke:
-        ks, seed_counts, steps, repeats, size = (2,), (1, 2), 20, 1, 2000
+        ks, seed_counts, steps, repeats, size = (2,), (2,), 20, 1, 2000
         policies, episodes, length = 2, 1, 50
     else:
         ks, seed_counts, steps, repeats, size = (2, 10), (1, 5, 25, 75), 500, 3, 1_000_000

@@ -45,10 +45,13 @@ def gflops(k: int, b: int, h: int, chain: int = 20, seconds: float = 2.0) -> flo
 def main() -> None:
     import os
 
-    from speed import matmul_peak  # benchmarks/speed.py, beside this file
+    import machine  # benchmarks/machine.py, beside this file
 
+    print(machine.host_line())
     print(f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}")
-    print(f"NumPy/OpenBLAS sgemm peak: {matmul_peak():.0f} GFLOP/s")
+    peak, n = machine.xla_peak()
+    for line in machine.ceiling_lines(peak, n, machine.openblas_peak()):
+        print(line)
     for k, b, h in SHAPES:
         print(f"XLA [{k}, {b}, {h}] x [{k}, {h}, {h}]: {gflops(k, b, h):6.0f} GFLOP/s")
 

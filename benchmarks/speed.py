@@ -47,24 +47,6 @@ def step_flops(
     return critic_step + actor_step / policy_freq
 
 
-def matmul_peak(seconds: float = 0.5, tries: int = 4) -> float:
-    """NumPy's sgemm peak under the environment as it is (kept for kernels.py's comparison)."""
-    import numpy as np
-
-    best = 0.0
-    for n in (512, 1024, 2048):
-        a = np.random.rand(n, n).astype(np.float32)
-        b = np.random.rand(n, n).astype(np.float32)
-        a @ b
-        for _ in range(tries):
-            reps, start = 0, time.perf_counter()
-            while time.perf_counter() - start < seconds:
-                a @ b
-                reps += 1
-            best = max(best, 2 * n**3 * reps / (time.perf_counter() - start) / 1e9)
-    return best
-
-
 def fake_data(obs_dim: int, act_dim: int, n: int = 1_000_000):
     """A random device-resident dataset of ``n`` transitions (speed does not depend on values)."""
     import jax.numpy as jnp

@@ -50,8 +50,8 @@ def test_gpu_script_smoke_mode_prints_what_the_readme_quotes(tmp_path):
     assert "evaluation round: 2 policies x 1 episodes x 50 steps" in text
     assert "| algorithm | seeds per program | programs | hours (training only) |" in text
     figures = json.loads(out.read_text())
-    assert [(r["k"], r["seeds"]) for r in figures["steps_per_s"]] == [(2, 1), (2, 2)]
+    assert [(r["k"], r["seeds"]) for r in figures["steps_per_s"]] == [(2, 2)]
     assert all(r["program_steps_per_s"] > 0 for r in figures["steps_per_s"])
     rows = figures["projection"]
-    assert [r["programs"] for r in rows] == [75, 38]
+    assert [r["programs"] for r in rows] == [38]  # ceil(75 runs / 2 per program)
     assert all(r["hours"] >= r["train_hours"] > 0 for r in rows)

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import shutil
 import subprocess
-import tomllib
 from pathlib import Path
+
+import tomllib
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -14,7 +15,9 @@ def test_import_contracts_hold_with_no_exceptions():
     config = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["importlinter"]
     assert len(config["contracts"]) >= 2
     for contract in config["contracts"]:
-        assert "ignore_imports" not in contract and "unmatched_ignore_imports_alerting" not in contract
+        assert (
+            "ignore_imports" not in contract and "unmatched_ignore_imports_alerting" not in contract
+        )
     lint = shutil.which("lint-imports")
     assert lint, "import-linter is a dev dependency: pip install -e '.[dev]'"
     result = subprocess.run([lint], cwd=ROOT, capture_output=True, text=True, timeout=120)

@@ -114,5 +114,5 @@ def test_stability_table_says_where_the_critics_fail():
     assert math.isclose(eabc["policy_spread"], (0.01 + 0.02) / 2)
     assert math.isclose(eabc["score"], 7.0) and math.isclose(eabc["score_std"], 2**0.5 * 2)
     text = report.stability_to_markdown(table)
-    assert "| hopper-medium | eabc | 2 | 7.0 ± 2.8 | 2/2 | 11,000 | 3,000 | 1.50% | 0.25 |" in text
-    assert "| hopper-medium | td3bc | 1 | 48.0 | 0/1 |  | 150 |  | 1.00 |" in text
+    assert "| hopper-medium | EABC | 2 | 7.0 ± 2.8 | 2/2 | 11,000 | 3,000 | 1.50% | 0.25 |" in text
+    assert "| hopper-medium | TD3+BC | 1 | 48.0 | 0/1 |  | 150 |  | 1.00 |" in text

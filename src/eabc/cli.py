@@ -3,15 +3,20 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
+import operator
 import re
 import sys
+import types
+import typing
 from pathlib import Path
 from typing import Annotated, Literal
 
 import tyro
 
 from eabc import __version__, compile_cache
+from eabc.experiments.sweep import PRESETS as _SWEEP_PRESETS
 from eabc.training.online import SACTrainConfig
 from eabc.training.trainer import TrainConfig
 
@@ -44,31 +49,42 @@ def _checked(options, config_class: type):
 TrainOptions = _parsed_unchecked(TrainConfig)
 SACTrainOptions = _parsed_unchecked(SACTrainConfig)
 
-SWEEP_PRESETS = (
-    "table1",
-    "table6",
-    "ablation-k",
-    "ablation-p",
-    "ablation-pess",
-    "study-screen",
-    "study",
-    "study-1m",
-)
-"""The names of ``eabc.experiments.sweep.PRESETS`` (a test checks they agree)."""
+SWEEP_PRESETS = tuple(_SWEEP_PRESETS)
+"""The names of ``eabc.experiments.sweep.PRESETS``, the choices of ``eabc sweep --preset``."""
 
 
-@dataclasses.dataclass(frozen=True)
-class AgentOverrides:
-    """Algorithm settings to change from the preset chosen by --algo (unset: the preset's)."""
+def _agent_overrides() -> type:
+    """The typed algorithm flags of ``eabc train``, made from the algorithm contracts: every
+    setting some algorithm lists in ``cli_flags``, unset by default (the preset's value)."""
+    from eabc.agents import ALGORITHMS  # noqa: PLC0415
+    from eabc.agents.contract import field_docs  # noqa: PLC0415
 
-    confidence_level: float | None = None
-    """EABC's p in [0, 1]; by default the paper's Table 3 value for the dataset."""
-    num_critics: int | None = None
-    """K, critic ensemble size (eabc: 10, td3bc/td3: 2)."""
-    pessimism: Literal["mean-std", "min", "min2"] | None = None
-    """How the ensemble is made pessimistic (eabc: mean-std, td3bc/td3: min)."""
-    alpha: float | None = None
-    """TD3+BC's alpha in lambda = alpha / mean|Q| (2.5)."""
+    fields, users = {}, {}
+    for algorithm in ALGORITHMS.values():
+        hints = typing.get_type_hints(type(algorithm.preset))
+        docs = field_docs(type(algorithm.preset))
+        for name in algorithm.cli_flags:
+            users.setdefault(name, []).append(
+                f"{algorithm.name}: {getattr(algorithm.preset, name)}"
+            )
+            fields.setdefault(name, (hints[name], docs.get(name, "")))
+    spec = []
+    for name, (hint, doc) in fields.items():
+        args = [a for a in typing.get_args(hint) if a is not type(None)]
+        optional = typing.get_origin(hint) in (typing.Union, types.UnionType)
+        inner = functools.reduce(operator.or_, args) if optional else hint  # noqa: E501
+        where = "; ".join(users[name]).replace(": None", ": Table 3's")
+        help_text = f"{doc} Unset: the preset's ({where})."
+        spec.append((name, Annotated[inner | None, tyro.conf.arg(help=help_text)], None))
+    return dataclasses.make_dataclass(
+        "AgentOverrides",
+        spec,
+        frozen=True,
+        namespace={"__doc__": "Algorithm settings to change from the preset --algo chose."},
+    )
+
+
+AgentOverrides = _agent_overrides()
 
 
 @dataclasses.dataclass(frozen=True)

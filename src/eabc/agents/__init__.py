@@ -1,42 +1,23 @@
-"""Offline RL agents. Each algorithm module provides ``init``, ``update`` and a config dataclass.
+"""Offline RL agents. Each algorithm file ends with ``ALGORITHMS``: its typed descriptions
+(:class:`eabc.agents.contract.Algorithm`); adding an algorithm is its file and one entry in
+``MODULES`` below.
 
-``ALGORITHMS`` maps the names accepted by ``eabc train --algo`` to their module and config preset.
+``ALGORITHMS`` maps the names accepted by ``eabc train --algo`` to their description.
 """
 
 from __future__ import annotations
 
-import dataclasses
-from types import ModuleType
-
 from eabc.agents import bc, bear, cql, eabc, iql, mopo, morel, sac, uwac, wpc
+from eabc.agents.contract import Algorithm
 
-
-@dataclasses.dataclass(frozen=True)
-class Algorithm:
-    name: str
-    module: ModuleType
-    """Provides ``init(key, obs_dim, act_dim, config)`` and ``update(state, batch, key, config, max_action)``."""
-    preset: object
-    """The default config (a frozen dataclass) of this algorithm."""
-
-    @property
-    def gaussian_actor(self) -> bool:
-        """Whether the actor is tanh-Gaussian (its deterministic action is tanh of the mean)."""
-        return getattr(self.module, "GAUSSIAN_ACTOR", False)
-
+MODULES = (eabc, bc, wpc, iql, cql, sac, bear, uwac, mopo, morel)
+"""The registered algorithm files, in the order ``--help`` lists their algorithms."""
 
 ALGORITHMS: dict[str, Algorithm] = {
-    **{name: Algorithm(name, eabc, preset) for name, preset in eabc.PRESETS.items()},
-    **{name: Algorithm(name, sac, sac.PRESETS[name]) for name in ("sac-n", "edac", "edac-10")},
-    "bc": Algorithm("bc", bc, bc.PRESETS["bc"]),
-    "wpc": Algorithm("wpc", wpc, wpc.PRESETS["wpc"]),
-    "iql": Algorithm("iql", iql, iql.PRESETS["iql"]),
-    **{name: Algorithm(name, cql, preset) for name, preset in cql.PRESETS.items()},
-    "bear": Algorithm("bear", bear, bear.PRESETS["bear"]),
-    "uwac": Algorithm("uwac", uwac, uwac.PRESETS["uwac"]),
-    "mopo": Algorithm("mopo", mopo, mopo.PRESETS["mopo"]),
-    "morel": Algorithm("morel", morel, morel.PRESETS["morel"]),
+    algorithm.name: algorithm for module in MODULES for algorithm in module.ALGORITHMS
 }
+
+__all__ = ["ALGORITHMS", "MODULES", "Algorithm", "get_algorithm"]
 
 
 def get_algorithm(name: str) -> Algorithm:

@@ -14,6 +14,7 @@ import optax
 
 from eabc import networks
 from eabc.agents.common import Batch
+from eabc.agents.contract import Algorithm
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,3 +56,6 @@ def update(
     updates, actor_opt = optax.adam(config.actor_lr).update(grads, state.actor_opt, state.actor)
     actor = optax.apply_updates(state.actor, updates)
     return BCState(actor, actor_opt, state.step + 1), metrics
+
+
+ALGORITHMS = (Algorithm("bc", "BC", PRESETS["bc"], init, update, column=0, steps_per_s=1035.0),)

@@ -29,8 +29,8 @@ import optax
 from eabc import networks
 from eabc.agents import sac
 from eabc.agents.common import Batch
+from eabc.agents.contract import Algorithm
 
-GAUSSIAN_ACTOR = True
 """The actor outputs a tanh-Gaussian; its deterministic action is ``tanh(mean)``."""
 
 NUM_CRITICS = 2
@@ -239,3 +239,11 @@ def update(
         step=state.step + 1,
     )
     return new_state, metrics
+
+
+ALGORITHMS = (
+    Algorithm("cql", "CQL", PRESETS["cql"], init, update, column=3, actor="tanh-gaussian",
+              steps_per_s=15.7),
+    Algorithm("cql-lagrange", "CQL-Lagrange", PRESETS["cql-lagrange"], init, update, column=3.5,
+              actor="tanh-gaussian", steps_per_s=16.5),
+)  # fmt: skip

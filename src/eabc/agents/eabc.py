@@ -39,6 +39,8 @@ import optax
 
 from eabc import networks
 from eabc.agents.common import Batch
+from eabc.agents.contract import Algorithm
+from eabc.data import tasks
 
 Pessimism = Literal["mean-std", "min", "min2"]
 BCWeight = Literal["bernoulli", "quantile", "auto"]
@@ -50,8 +52,9 @@ class EABCConfig:
 
     num_critics: int = 10
     """K, the number of Q-networks in the critic ensemble."""
-    confidence_level: float = 1.0
-    """p, the probability that a sample's behaviour-cloning term is kept (Table 3 per dataset)."""
+    confidence_level: float | None = None
+    """p, the probability that a sample's behaviour-cloning term is kept; None: Table 3's p for
+    the dataset (bc_weight bernoulli)."""
     pessimism: Pessimism = "mean-std"
     """How the ensemble becomes one value: mean - std (ddof 1), min of all, or min of 2 random members."""
     actor_uses_ensemble: bool = True
@@ -104,7 +107,7 @@ class EABCConfig:
     def __post_init__(self):
         if self.num_critics < 2:
             raise ValueError(f"num_critics must be at least 2, got {self.num_critics}")
-        if not 0.0 <= self.confidence_level <= 1.0:
+        if self.confidence_level is not None and not 0.0 <= self.confidence_level <= 1.0:
             raise ValueError(f"confidence_level p must lie in [0, 1], got {self.confidence_level}")
         if self.pessimism not in ("mean-std", "min", "min2"):
             raise ValueError(f"pessimism must be mean-std, min or min2, got {self.pessimism!r}")
@@ -135,7 +138,11 @@ PRESETS: dict[str, EABCConfig] = {
     ),
     # TD3 (Fujimoto et al., 2018) run offline: TD3+BC without the BC term.
     "td3": EABCConfig(
-        num_critics=2, pessimism="min", actor_uses_ensemble=False, behavior_cloning=False
+        num_critics=2,
+        confidence_level=1.0,
+        pessimism="min",
+        actor_uses_ensemble=False,
+        behavior_cloning=False,
     ),
     # The authors' earlier rule (SPEC section 5): BC switched per sample by the ensemble, q per dataset.
     "eabc-quantile": EABCConfig(bc_weight="quantile"),
@@ -247,6 +254,11 @@ def actor_loss(actor, critic, batch: Batch, key, config, max_action, keep=None, 
     lam = jax.lax.stop_gradient(config.alpha / jnp.abs(value).mean())
     if keep is None:
         p = config.confidence_level if p is None else p
+        if p is None:
+            raise ValueError(
+                "confidence_level p is unset: resolve it from the dataset (Table 3, done by the "
+                "trainer) or set it"
+            )
         keep = jax.random.bernoulli(mask_key, p, value.shape)
     keep = keep.astype(pi.dtype)
     bc = (keep * ((pi - batch.actions) ** 2).mean(axis=-1)).mean()
@@ -389,3 +401,57 @@ def update(
         "actor_updated": step % config.policy_freq == 0,
     }
     return new_state, metrics
+
+
+def resolve(config: EABCConfig, dataset_name: str, steps: int, given: frozenset[str]):
+    """Table 3's p (bc_weight bernoulli) and SPEC section 5's q (bc_weight quantile) for the
+    dataset, where they are unset."""
+    task = tasks.parse_task(dataset_name)
+    if config.bc_weight == "quantile" and config.quantile_level is None:
+        q = tasks.default_quantile_level(task)
+        if q is None:
+            raise ValueError(
+                f"no default quantile level q for dataset {dataset_name!r} (SPEC section 5's "
+                "table covers hopper/halfcheetah/walker2d x the five kinds); pass --set "
+                "quantile_level=Q"
+            )
+        config = dataclasses.replace(config, quantile_level=q)
+    if config.bc_weight == "bernoulli" and config.confidence_level is None:
+        p = tasks.default_confidence_level(task)
+        if p is None:
+            raise ValueError(
+                f"no default confidence level p for dataset {dataset_name!r} (Table 3 covers "
+                "hopper/halfcheetah/walker2d x random/medium/medium-replay/medium-expert/expert); "
+                "pass --confidence-level P (the paper suggests p <= 0.25 for data from weak "
+                "policies and p >= 0.5 for good ones)"
+            )
+        config = dataclasses.replace(config, confidence_level=p)
+    return config
+
+
+def _ensemble_cost(reference: int):
+    return lambda config: config.num_critics / reference  # the critic ensemble dominates a step
+
+
+_FAMILY = {
+    "resolve": resolve,
+    "report_settings": ("num_critics", "confidence_level", "pessimism"),
+    "cli_flags": ("confidence_level", "num_critics", "pessimism", "alpha"),
+}
+ALGORITHMS = (
+    Algorithm("eabc", "EABC", PRESETS["eabc"], init, update, column=13, steps_per_s=67.0,
+              cost=_ensemble_cost(10), **_FAMILY),
+    Algorithm("td3bc", "TD3+BC", PRESETS["td3bc"], init, update, column=2, steps_per_s=289.0,
+              cost=_ensemble_cost(2), **_FAMILY),
+    Algorithm("td3", "TD3", PRESETS["td3"], init, update, column=1, steps_per_s=285.0,
+              cost=_ensemble_cost(2), **_FAMILY),
+    *(
+        Algorithm(name, display, PRESETS[name], init, update, column=column, steps_per_s=60.0,
+                  cost=_ensemble_cost(10), **_FAMILY)
+        for name, display, column in (
+            ("eabc-quantile", "EABC-quantile", 14),
+            ("eabc-auto", "EABC-auto", 15),
+            ("eabc-robust", "EABC-robust", 16),
+        )
+    ),
+)  # fmt: skip

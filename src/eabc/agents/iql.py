@@ -32,6 +32,7 @@ import optax
 
 from eabc import networks
 from eabc.agents.common import Batch
+from eabc.agents.contract import Algorithm
 
 if TYPE_CHECKING:
     from eabc.data.dataset import Dataset
@@ -224,3 +225,20 @@ def update(
         step=state.step + 1,
     )
     return new_state, {**value_metrics, **actor_metrics, **critic_metrics}
+
+
+def resolve(
+    config: IQLConfig, dataset_name: str, steps: int | None, given: frozenset[str]
+) -> IQLConfig:
+    """The actor's cosine schedule runs over the run's steps unless total_steps is set."""
+    if config.total_steps is None and steps:
+        return dataclasses.replace(config, total_steps=steps)
+    return config
+
+
+ALGORITHMS = (
+    Algorithm(
+        "iql", "IQL", PRESETS["iql"], init, update, column=4,
+        preprocess=preprocess, resolve=resolve, steps_per_s=227.0,
+    ),
+)  # fmt: skip

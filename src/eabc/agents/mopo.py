@@ -31,9 +31,9 @@ import jax.numpy as jnp
 
 from eabc.agents import dynamics, sac
 from eabc.agents.common import Batch
+from eabc.agents.contract import Algorithm
 from eabc.data import tasks
 
-GAUSSIAN_ACTOR = True
 """The actor outputs a tanh-Gaussian; its deterministic action is ``tanh(mean)``."""
 
 
@@ -146,7 +146,7 @@ TASK_SETTINGS: dict[tuple[str, str], dict[str, float]] = {
 """MOPO's per-task rollout length h and penalty lambda (the paper has no expert setting)."""
 
 
-def resolve(config: MOPOConfig, dataset_name: str, given: set[str]) -> MOPOConfig:
+def resolve(config: MOPOConfig, dataset_name: str, steps: int, given: frozenset[str]) -> MOPOConfig:
     """The per-task settings for ``dataset_name`` where the user did not set them; the
     termination rule from its environment. Called by the trainer."""
     task = tasks.parse_task(dataset_name)
@@ -317,3 +317,10 @@ def update(
     state, metrics = sac.update(state, mixed_batch(state, batch, sample_key, config), sac_key,
                                 config.sac, max_action)  # fmt: skip
     return state, {**metrics, **rollout_metrics, "model_buffer": state.buffer_count}
+
+
+ALGORITHMS = (
+    # steps/s: a rough hint, excluding the one-off model fit (not benchmarked quiet yet).
+    Algorithm("mopo", "MOPO", PRESETS["mopo"], init, update, column=9, actor="tanh-gaussian",
+              pretrain=pretrain, resolve=resolve, steps_per_s=30.0),
+)  # fmt: skip

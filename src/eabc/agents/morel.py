@@ -24,9 +24,9 @@ import jax.numpy as jnp
 
 from eabc.agents import dynamics, mopo
 from eabc.agents.common import Batch
+from eabc.agents.contract import Algorithm
 from eabc.agents.mopo import MOPOState, init, update  # noqa: F401  (the contract: init, update)
 
-GAUSSIAN_ACTOR = True
 """The actor outputs a tanh-Gaussian; its deterministic action is ``tanh(mean)``."""
 
 
@@ -59,11 +59,13 @@ class MOReLConfig(mopo.MOPOConfig):
 PRESETS: dict[str, MOReLConfig] = {"morel": MOReLConfig()}
 
 
-def resolve(config: MOReLConfig, dataset_name: str, given: set[str]) -> MOReLConfig:
+def resolve(
+    config: MOReLConfig, dataset_name: str, steps: int, given: frozenset[str]
+) -> MOReLConfig:
     """The termination rule from the dataset's environment (MOPO's per-task h and lambda do not
     apply: MOReL's official config is one for all tasks)."""
     keep = given | {"rollout_length", "penalty_coeff"}
-    return mopo.resolve(config, dataset_name, keep)
+    return mopo.resolve(config, dataset_name, steps, keep)
 
 
 def dataset_disagreement(model, data: Batch, activation: str, chunk: int = 8192) -> jax.Array:
@@ -89,3 +91,10 @@ def pretrain(state: MOPOState, data: Batch, key: jax.Array, config: MOReLConfig,
     threshold = config.pessimism_coef * spread.max()
     mopo._log(f"MOReL: halting threshold {float(threshold):.4f} ({config.pessimism_coef} x max)")
     return state.replace(halt_threshold=jnp.asarray(threshold, jnp.float32))
+
+
+ALGORITHMS = (
+    # steps/s: a rough hint, excluding the one-off model fit (not benchmarked quiet yet).
+    Algorithm("morel", "MOReL", PRESETS["morel"], init, update, column=8, actor="tanh-gaussian",
+              pretrain=pretrain, resolve=resolve, steps_per_s=30.0),
+)  # fmt: skip

@@ -25,8 +25,8 @@ import optax
 
 from eabc import networks
 from eabc.agents.common import Batch
+from eabc.agents.contract import Algorithm
 
-GAUSSIAN_ACTOR = True
 """The actor outputs a tanh-Gaussian; its deterministic action is ``tanh(mean)``."""
 
 
@@ -219,3 +219,20 @@ def update(
         step=state.step + 1,
     )
     return new_state, {**critic_metrics, **actor_metrics, "alpha": jnp.exp(state.log_alpha)}
+
+
+def _critic_cost(reference: int):
+    return lambda config: config.num_critics / reference
+
+
+ALGORITHMS = (
+    Algorithm("sac-n", "SAC-N", PRESETS["sac-n"], init, update, column=6, actor="tanh-gaussian",
+              steps_per_s=56.0, cost=_critic_cost(10),
+              report_settings=("num_critics",), cli_flags=("num_critics",)),
+    Algorithm("edac", "EDAC", PRESETS["edac"], init, update, column=11, actor="tanh-gaussian",
+              steps_per_s=5.6, cost=_critic_cost(50),
+              report_settings=("num_critics",), cli_flags=("num_critics",)),
+    Algorithm("edac-10", "EDAC-10", PRESETS["edac-10"], init, update, column=12, actor="tanh-gaussian",
+              steps_per_s=33.7, cost=_critic_cost(10),
+              report_settings=("num_critics",), cli_flags=("num_critics",)),
+)  # fmt: skip

@@ -28,8 +28,8 @@ from eabc import networks
 from eabc.agents import bear
 from eabc.agents.bear import BEARState
 from eabc.agents.common import Batch
+from eabc.agents.contract import Algorithm
 
-GAUSSIAN_ACTOR = True
 """The actor outputs a tanh-Gaussian; its deterministic action is ``tanh(mean)``."""
 
 
@@ -216,3 +216,10 @@ def update(
             spectral_u_target=power_iteration(state.critic_target, state.spectral_u_target)[0],
         )
     return new_state, metrics
+
+
+ALGORITHMS = (
+    # steps/s: a rough hint (100 dropout passes per step; not benchmarked quiet yet).
+    Algorithm("uwac", "UWAC", PRESETS["uwac"], init, update, column=10, actor="tanh-gaussian",
+              steps_per_s=3.0),
+)  # fmt: skip

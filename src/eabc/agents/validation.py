@@ -21,7 +21,7 @@ Check = tuple[Callable[[Any], bool], str]
 RANGES: dict[str, Check] = {
     "tau": (lambda v: 0 < v <= 1, "in (0, 1]"),
     "discount": (lambda v: 0 <= v < 1, "in [0, 1)"),
-    "confidence_level": (lambda v: 0 <= v <= 1, "in [0, 1]"),
+    "confidence_level": (lambda v: v is None or 0 <= v <= 1, "in [0, 1]"),
     "expectile": (lambda v: 0 < v < 1, "in (0, 1)"),
     "policy_freq": (lambda v: v >= 1, "an integer >= 1"),
     "num_critics": (lambda v: v >= 1, "an integer >= 1"),

@@ -19,6 +19,7 @@ import optax
 from eabc import networks
 from eabc.agents import eabc
 from eabc.agents.common import Batch
+from eabc.agents.contract import Algorithm
 
 
 @dataclasses.dataclass(frozen=True)
@@ -96,3 +97,11 @@ def update(
         "actor_updated": step % config.policy_freq == 0,
     }
     return new_state, metrics
+
+
+ALGORITHMS = (
+    Algorithm(
+        "wpc", "wPC", PRESETS["wpc"], init, update, column=5, steps_per_s=209.0,
+        cost=lambda config: config.num_critics / 2, report_settings=("num_critics",), cli_flags=("num_critics", "alpha"),
+    ),
+)  # fmt: skip

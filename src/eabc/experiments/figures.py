@@ -7,6 +7,7 @@ Figure 1: :func:`plot_learning_curves`; Figures 2-4: :func:`plot_ablation`; Figu
 from __future__ import annotations
 
 import math
+import typing
 from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path
@@ -14,11 +15,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from eabc.data import tasks
+from eabc.agents import ALGORITHMS, get_algorithm
 from eabc.experiments.report import (
     ABLATION_PARAMETERS,
-    PAPER_DEFAULTS,
-    PESSIMISM_ORDER,
     _labelled,
     _labels,
     _missing,
@@ -150,31 +149,50 @@ def _value_key(value):
     return round(float(value), 9) if isinstance(value, int | float | np.number) else str(value)
 
 
-def _value_label(parameter: str, value) -> str:
+def _value_label(parameter: str, value, algo: str = "eabc") -> str:
     if value is None:
         return "none"
-    if parameter == "num_critics":
-        return f"K={value:g}"
-    if parameter == "confidence_level":
-        return f"p={value:g}"
+    short = get_algorithm(algo).short_names.get(parameter) if algo in ALGORITHMS else None
+    if short is not None and isinstance(value, int | float):
+        return f"{short}={value:g}"
     return str(value)
 
 
-def _value_sort(parameter: str, value) -> tuple:
-    if parameter == "pessimism" and value in PESSIMISM_ORDER:
-        return (0, PESSIMISM_ORDER.index(value), "")
+def _value_sort(parameter: str, value, algo: str = "eabc") -> tuple:
+    choices = _choices(algo, parameter)
+    if value in choices:  # a Literal setting: the order its declaration gives
+        return (0, choices.index(value), "")
     if isinstance(value, float):
         return (0, value, "")
     return (1, 0, str(value))
 
 
-def _reference(group: pd.DataFrame, other: str, dataset: str):
-    """The value an ablation holds ``other`` at: the default runs', else the paper's, else the mode."""
+def _choices(algo: str, parameter: str) -> tuple:
+    if algo not in ALGORITHMS or parameter not in get_algorithm(algo).settings():
+        return ()
+    hint = typing.get_type_hints(type(get_algorithm(algo).preset)).get(parameter)
+    args = typing.get_args(hint)
+    return args if typing.get_origin(hint) is typing.Literal else ()
+
+
+def _paper_value(algo: str, other: str, dataset: str):
+    """What the algorithm's own preset gives ``other`` on ``dataset`` (p: Table 3's)."""
+    if algo not in ALGORITHMS:
+        return None
+    algorithm = get_algorithm(algo)
+    try:
+        config = algorithm.resolved(algorithm.preset, dataset, 0, set())
+    except ValueError:  # e.g. no Table 3 p for this dataset
+        config = algorithm.preset
+    return getattr(config, other, None)
+
+
+def _reference(group: pd.DataFrame, other: str, dataset: str, algo: str = "eabc"):
+    """The value an ablation holds ``other`` at: the default runs', else the algorithm's preset
+    (resolved for the dataset), else the mode."""
     default = group[group["variant"] == ""]
     values = [_value_key(v) for v in (default if len(default) else group)[other]]
-    paper = PAPER_DEFAULTS.get(other)
-    if other == "confidence_level":
-        paper = tasks.default_confidence_level(tasks.parse_task(dataset))
+    paper = _paper_value(algo, other, dataset)
     if not len(default) and _value_key(paper) in values:
         return _value_key(paper)
     return Counter(values).most_common(1)[0][0]
@@ -197,7 +215,7 @@ def _ablation_runs(runs: pd.DataFrame, parameter: str, algo: str) -> pd.DataFram
         mask = np.ones(len(group), dtype=bool)
         for other in ABLATION_PARAMETERS:
             if other != parameter:
-                ref = _reference(group, other, dataset)
+                ref = _reference(group, other, dataset, algo)
                 mask &= np.array([_value_key(v) == ref for v in group[other]])
         kept.append(group[mask])
     if not kept:
@@ -211,7 +229,7 @@ def _ablation_runs(runs: pd.DataFrame, parameter: str, algo: str) -> pd.DataFram
 def ablation_values(runs: pd.DataFrame, parameter: str, algo: str = "eabc") -> list:
     """The values of ``parameter`` that :func:`plot_ablation` would compare, in order."""
     values = set(_ablation_runs(runs, parameter, algo)["value"])
-    return sorted(values, key=lambda v: _value_sort(parameter, v))
+    return sorted(values, key=lambda v: _value_sort(parameter, v, algo))
 
 
 def plot_ablation(
@@ -230,9 +248,9 @@ def plot_ablation(
     if sub.empty:
         raise ValueError(f"no runs of {algo!r} to plot an ablation of {parameter!r}")
     values = ablation_values(runs, parameter, algo)
-    sub = sub.assign(key=[_value_label(parameter, v) for v in sub["value"]])
+    sub = sub.assign(key=[_value_label(parameter, v, algo) for v in sub["value"]])
     stats = _curve_stats(sub, evaluations, "key")
-    keys = [_value_label(parameter, v) for v in values]
+    keys = [_value_label(parameter, v, algo) for v in values]
     title = f"Ablation of {parameter} ({display_name(algo)})"
     return _plot_curves(stats, "key", keys, path, title)
 
@@ -308,5 +326,6 @@ def _ablation_algo(runs: pd.DataFrame, parameter: str) -> str | None:
     """EABC if its runs vary ``parameter``, else the first algorithm whose runs do, else None."""
     if any(column not in runs for column in ABLATION_PARAMETERS):
         return None
-    algos = sorted(runs["algo"].unique(), key=lambda a: (a != "eabc", a))
+    order = list(ALGORITHMS)  # the registry's order: EABC's file first
+    algos = sorted(runs["algo"].unique(), key=lambda a: (order.index(a) if a in order else 99, a))
     return next((a for a in algos if len(ablation_values(runs, parameter, a)) > 1), None)

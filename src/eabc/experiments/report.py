@@ -25,31 +25,19 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from eabc.agents import ALGORITHMS
 from eabc.data import tasks
 from eabc.experiments.stats import STATISTICS, _aggregates_batched, stratified_bootstrap_ci
 
 ENV_ORDER = ("hopper", "halfcheetah", "walker2d")
 KIND_ORDER = ("random", "medium", "medium-replay", "medium-expert", "expert")
-ALGO_ORDER = (
-    "bc", "td3", "td3bc", "cql", "iql", "wpc", "sac-n", "bear", "morel", "mopo", "uwac", "edac",
-    "edac-10", "eabc",
-    "eabc-quantile", "eabc-auto", "eabc-robust",
-)  # fmt: skip
-"""Table 1's column order, then Table 6's (BEAR, MOReL, MOPO, UWAC, EDAC, EDAC-10, EABC), then
-EABC's variants; unknown algorithms go just
-before EABC."""
-ABLATION_PARAMETERS = ("num_critics", "confidence_level", "pessimism")
-PESSIMISM_ORDER = ("mean-std", "min", "min2")
-PAPER_DEFAULTS = {"num_critics": 10.0, "pessimism": "mean-std"}
-"""EABC's defaults (p comes from Table 3 per dataset): what an ablation holds fixed."""
+ABLATION_PARAMETERS = tuple(
+    dict.fromkeys(k for a in ALGORITHMS.values() for k in a.report_settings)
+)
+"""The settings some algorithm's contract lets reports compare (EABC's K, p and pessimism)."""
 AVERAGE = "Average"
-DISPLAY_NAMES = {
-    "bc": "BC", "td3": "TD3", "td3bc": "TD3+BC", "cql": "CQL", "cql-lagrange": "CQL-Lagrange",
-    "iql": "IQL", "wpc": "wPC", "sac-n": "SAC-N", "edac": "EDAC", "edac-10": "EDAC-10",
-    "eabc": "EABC", "eabc-quantile": "EABC-quantile", "eabc-auto": "EABC-auto",
-    "eabc-robust": "EABC-robust", "bear": "BEAR", "uwac": "UWAC", "mopo": "MOPO", "morel": "MOReL",
-}  # fmt: skip
-"""The paper's names of the algorithms (and the sources' for the others), for tables and figures."""
+UNKNOWN_COLUMN = 12.5
+"""Where an algorithm the registry does not know goes among the columns (just before EABC's)."""
 MIN_RUNS = 3
 """Fewer runs per dataset than this and a bootstrap interval or a std says little: flagged."""
 
@@ -68,7 +56,7 @@ def display_name(label: str) -> str:
     """A label as a reader of the paper knows it: ``td3bc`` -> ``TD3+BC``, ``eabc K=5`` ->
     ``EABC K=5`` (a variant keeps its settings); unknown algorithms keep their id."""
     algo, _, variant = str(label).partition(" ")
-    name = DISPLAY_NAMES.get(algo, algo)
+    name = ALGORITHMS[algo].display_name if algo in ALGORITHMS else algo
     return f"{name} {variant}" if variant else name
 
 
@@ -88,7 +76,7 @@ def _natural_key(text: str) -> tuple:
 
 
 def _label_key(algo: str, variant: str) -> tuple:
-    rank = ALGO_ORDER.index(algo) if algo in ALGO_ORDER else ALGO_ORDER.index("eabc") - 0.5
+    rank = ALGORITHMS[algo].column if algo in ALGORITHMS else UNKNOWN_COLUMN
     return (rank, algo, variant != "", _natural_key(variant))
 
 

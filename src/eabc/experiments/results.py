@@ -32,13 +32,15 @@ from pathlib import Path
 
 import pandas as pd
 
+from eabc.agents import ALGORITHMS
 from eabc.data import tasks
 from eabc.training.checkpoint import CONFIG
 from eabc.training.logger import LOG
 from eabc.training.trainer import FINAL_EVALUATIONS, SUMMARY
 
 DATABASE = "results.sqlite"
-SETTINGS = ("num_critics", "confidence_level", "pessimism")
+SETTINGS = tuple(dict.fromkeys(k for a in ALGORITHMS.values() for k in a.report_settings))
+"""Algorithm settings kept as columns: what the contracts' ``report_settings`` name."""
 DIAGNOSTICS = ("q_mean", "q_ensemble_std", "policy_q_std", "bc_fraction", "auto_p")
 """Log columns kept from a run's last row (``*_last``): how its critics and BC term ended."""
 

@@ -43,8 +43,6 @@ from eabc.training.trainer import SUMMARY, TrainConfig
 RUNS = "runs"
 SPEC = "sweep.json"
 """What a sweep knows about one of its runs (its spec and variant label)."""
-SHORT = {"num_critics": "K", "confidence_level": "p"}
-"""Short names used in run ids and labels."""
 TRAIN_FIELDS = {f.name for f in dataclasses.fields(TrainConfig)} - {"dataset", "algo", "seed"}
 
 # Issue 14's study: where published EABC fails on our data and what fixes it, at lengths this
@@ -152,11 +150,13 @@ class RunSpec:
     @property
     def variant(self) -> str:
         """A short label of the overrides, e.g. ``K=5 p=0.25`` (empty for the preset)."""
-        return " ".join(f"{SHORT.get(k, k)}={_text(v)}" for k, v in self.overrides)
+        short = get_algorithm(self.algo).short_names
+        return " ".join(f"{short.get(k, k)}={_text(v)}" for k, v in self.overrides)
 
     @property
     def group_id(self) -> str:
-        slug = "_".join(f"{SHORT.get(k, k)}{_text(v)}" for k, v in self.overrides)
+        short = get_algorithm(self.algo).short_names
+        slug = "_".join(f"{short.get(k, k)}{_text(v)}" for k, v in self.overrides)
         name = self.dataset
         if is_path(name):  # pendA.npz in two folders are two datasets: a hash of the full path
             full = str(Path(name).expanduser().resolve())
@@ -375,31 +375,15 @@ def problems(runs: list[RunSpec], root: Path) -> dict[str, list[str]]:
     return out
 
 
-# Measured steps/s at batch 256 on hopper's shapes; the estimate scales the EABC family by K.
-CPU_STEPS_PER_S = {  # python benchmarks/algorithms.py on the 2-core machine (README)
-    "bc": 1035.0,
-    "td3": 285.0,
-    "td3bc": 289.0,
-    "wpc": 209.0,
-    "eabc": 67.0,
-    "iql": 227.0,
-    "cql": 15.7,
-    "cql-lagrange": 16.5,
-    "sac-n": 56.0,
-    "edac-10": 33.7,
-    "edac": 5.6,
-}
-
-
 def estimate_seconds(run: RunSpec, steps_done: int = 0) -> float:
-    """A rough cost of the remaining steps on one machine like ours (2 CPU cores)."""
-    rate = CPU_STEPS_PER_S.get(run.algo, 60.0)
-    k = dict(run.overrides).get("num_critics")
-    if k is not None and run.algo in ("eabc", "td3", "td3bc", "wpc"):
-        rate = rate * 10.0 / max(int(k), 1) if run.algo == "eabc" else rate * 2.0 / max(int(k), 1)
-    config = run.train_config()
-    left = max(config.steps - steps_done, 0)
-    evaluations = left // config.eval_interval * config.eval_episodes
+    """A rough cost of the remaining steps on one machine like ours (2 CPU cores), from the
+    algorithm's contract: its preset's measured steps/s, scaled by its settings' relative cost."""
+    algorithm = get_algorithm(run.algo)
+    config = dataclasses.replace(algorithm.preset, **dict(run.overrides))
+    rate = algorithm.steps_per_s / max(algorithm.relative_cost(config), 1e-9)
+    train = run.train_config()
+    left = max(train.steps - steps_done, 0)
+    evaluations = left // train.eval_interval * train.eval_episodes
     return left / rate + evaluations * EPISODE_SECONDS
 
 

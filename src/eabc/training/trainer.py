@@ -23,7 +23,7 @@ from tqdm.auto import tqdm
 
 from eabc.agents import Algorithm, get_algorithm, validation
 from eabc.agents.common import Batch
-from eabc.data import tasks
+from eabc.agents.contract import CRITIC_METRICS
 from eabc.data.dataset import Dataset, DatasetError, Normalizer
 from eabc.data.sources import load_dataset
 from eabc.evaluation import Evaluator, Policy, check_spaces
@@ -77,39 +77,17 @@ class TrainConfig:
 def resolve_agent_config(
     algo: str, dataset_name: str, overrides: dict[str, Any], steps: int | None = None
 ) -> Any:
-    """The algorithm's preset with the user's overrides; p from Table 3 when EABC's is not given,
-    and ``total_steps`` (e.g. IQL's learning-rate schedule) = the run's ``steps`` when not given."""
+    """The algorithm's preset with the user's overrides, then the settings that depend on the data
+    and the run's length resolved by the algorithm itself (its contract's ``resolve``: Table 3's p
+    for EABC, IQL's schedule over ``steps``, MOPO's per-task h and lambda)."""
     algorithm = get_algorithm(algo)
     overrides = {k: v for k, v in overrides.items() if v is not None}
-    fields = {f.name for f in dataclasses.fields(algorithm.preset)}
+    fields = algorithm.settings()
     unknown = set(overrides) - fields
     if unknown:
         raise ValueError(f"{algo} has no setting(s) {sorted(unknown)}; it has {sorted(fields)}")
-    bc_weight = overrides.get("bc_weight", getattr(algorithm.preset, "bc_weight", None))
-    if bc_weight == "quantile" and overrides.get("quantile_level") is None:
-        q = tasks.default_quantile_level(tasks.parse_task(dataset_name))
-        if q is None:
-            raise ValueError(
-                f"no default quantile level q for dataset {dataset_name!r} (SPEC section 5's "
-                "table covers hopper/halfcheetah/walker2d x the five kinds); pass --set "
-                "quantile_level=Q"
-            )
-        overrides["quantile_level"] = q
-    if algo == "eabc" and bc_weight == "bernoulli" and "confidence_level" not in overrides:
-        p = tasks.default_confidence_level(tasks.parse_task(dataset_name))
-        if p is None:
-            raise ValueError(
-                f"no default confidence level p for dataset {dataset_name!r} (Table 3 covers "
-                "hopper/halfcheetah/walker2d x random/medium/medium-replay/medium-expert/expert); "
-                "pass --confidence-level P (the paper suggests p <= 0.25 for data from weak "
-                "policies and p >= 0.5 for good ones)"
-            )
-        overrides["confidence_level"] = p
-    if steps is not None and "total_steps" in fields and "total_steps" not in overrides:
-        overrides["total_steps"] = steps
     config = validation.validate(algorithm.preset, algo, overrides)
-    resolve = getattr(algorithm.module, "resolve", None)  # per-task settings, e.g. MOPO's h
-    return config if resolve is None else resolve(config, dataset_name, set(overrides))
+    return algorithm.resolved(config, dataset_name, steps, set(overrides))
 
 
 @dataclasses.dataclass
@@ -290,22 +268,20 @@ def _build(run_dir, config, agent_config, dataset, state) -> Run:
     init_key, loop_key = jax.random.split(jax.random.PRNGKey(config.seed))
     fresh = {
         "agent": _init_agent(
-            algorithm.module.init, init_key, dataset.obs_dim, dataset.act_dim, agent_config
+            algorithm.init, init_key, dataset.obs_dim, dataset.act_dim, agent_config
         ),
         "key": loop_key,
         "evaluations": {},
         "elapsed": 0.0,
         "normalizer": {"mean": normalizer.mean, "std": normalizer.std},
     }
-    pretrain = getattr(algorithm.module, "pretrain", None)
-    if pretrain is not None and state is None:  # e.g. MOPO's dynamics model; resume loads it
-        preprocess = getattr(algorithm.module, "preprocess", None)
-        data = device_data(dataset if preprocess is None else preprocess(dataset), normalizer)
-        fresh["agent"] = pretrain(
+    if algorithm.pretrain is not None and state is None:  # e.g. MOPO's model; resume loads it
+        data = device_data(_prepared(algorithm, dataset), normalizer)
+        fresh["agent"] = algorithm.pretrain(
             fresh["agent"], data, jax.random.fold_in(init_key, 1), agent_config, normalizer
         )
     if state == "checkpoint":
-        what = f"this {config.algo} run ({_settings_text(agent_config)}, {dataset.name})"
+        what = f"this {config.algo} run ({_settings_text(algorithm, agent_config)}, {dataset.name})"
         saved = checkpoint.load(run_dir, {**fresh, "evaluations": None}, what)
         fresh = {**saved, "evaluations": saved["evaluations"] or {}}
         normalizer = Normalizer(**{k: np.asarray(v) for k, v in saved["normalizer"].items()})
@@ -314,9 +290,20 @@ def _build(run_dir, config, agent_config, dataset, state) -> Run:
     )
 
 
-def _settings_text(agent_config) -> str:
-    shown = ("num_critics", "hidden_dims", "pessimism")
-    return ", ".join(f"{k}={getattr(agent_config, k)}" for k in shown if hasattr(agent_config, k))
+def _settings_text(algorithm: Algorithm, agent_config) -> str:
+    """The settings that differ from the algorithm's preset, e.g. ``num_critics=5``."""
+    changed = [
+        f"{f.name}={getattr(agent_config, f.name)}"
+        for f in dataclasses.fields(agent_config)
+        if getattr(agent_config, f.name) != getattr(algorithm.preset, f.name)
+    ]
+    return ", ".join(changed) or "its preset settings"
+
+
+def _prepared(algorithm: Algorithm, dataset: Dataset) -> Dataset:
+    """The data as the algorithm trains on it (e.g. IQL's reward scaling); the run keeps the
+    dataset as loaded."""
+    return dataset if algorithm.preprocess is None else algorithm.preprocess(dataset)
 
 
 # One compiled program rather than dozens of eagerly compiled operations (and cacheable on disk).
@@ -363,13 +350,15 @@ def train_chunk_seeds(agent_states, keys, data: Batch, update, batch_size: int, 
     return jax.vmap(chunk, in_axes=(0, 0, None))(agent_states, keys, data)
 
 
-def summarize_metrics(metrics: dict[str, np.ndarray]) -> dict[str, float]:
-    """Means over a chunk; actor metrics only over the steps that updated the actor."""
+def summarize_metrics(
+    metrics: dict[str, np.ndarray], step_metrics: frozenset[str] = CRITIC_METRICS
+) -> dict[str, float]:
+    """Means over a chunk; metrics other than ``step_metrics`` (the algorithm's contract says which
+    its every step computes) only over the steps that updated the actor."""
     actor_steps = metrics.pop("actor_updated", None)
-    critic_keys = {"critic_loss", "q_mean", "q_ensemble_std", "target_mean"}
     out = {}
     for key, values in metrics.items():
-        if actor_steps is not None and key not in critic_keys and actor_steps.any():
+        if actor_steps is not None and key not in step_metrics and actor_steps.any():
             values = values[actor_steps.astype(bool)]
         out[key] = float(np.mean(values))
     return out
@@ -413,13 +402,11 @@ def _train_seeds(runs: list[Run], progress: bool) -> list[dict[str, Any]]:
         return [_train_seeds([run], progress)[0] for run in runs]
     config = first.config
     dataset = first.dataset
-    preprocess = getattr(first.algorithm.module, "preprocess", None)
-    if preprocess is not None:  # e.g. IQL's reward scaling; the run keeps the data as loaded
-        dataset = preprocess(dataset)
+    dataset = _prepared(first.algorithm, dataset)
     data = device_data(dataset, first.normalizer)
     q_range = value_range(dataset.rewards, getattr(first.agent_config, "discount", None))
     update = functools.partial(
-        first.algorithm.module.update, config=first.agent_config, max_action=first.max_action
+        first.algorithm.update, config=first.agent_config, max_action=first.max_action
     )
     loggers = [RunLogger(run.run_dir, resume_step=run.step) for run in runs]
     seeds = ",".join(str(run.config.seed) for run in runs)
@@ -564,7 +551,7 @@ def _after_chunk(
     run.state = {**run.state, "agent": agent, "key": key}
     run.state["elapsed"] += seconds
     row = {"step": run.step, "wall_time": run.state["elapsed"], "steps_per_s": length / seconds}
-    row |= summarize_metrics(jax.device_get(metrics))
+    row |= summarize_metrics(jax.device_get(metrics), run.algorithm.step_metrics)
     if q_range is not None and "q_mean" in row:
         row["q_out_of_range"] = float(not in_range(row["q_mean"], q_range))
     bad = non_finite(row)

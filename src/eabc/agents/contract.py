@@ -1,0 +1,111 @@
+"""The algorithm contract: everything generic code (the trainer, sweeps, results, reports, the CLI)
+may know of an algorithm, in one typed description defined in the algorithm's own file.
+
+An algorithm file ends with ``ALGORITHMS = (Algorithm(...), ...)``; ``eabc.agents`` registers every
+file listed in its one tuple of modules. Generic code asks the description and never names an
+algorithm or its settings. The state ``init`` returns is a pytree (a flax struct dataclass) with
+``.actor`` (the policy's parameters) and ``.step`` (gradient steps taken); ``update`` is pure, so the
+trainer can run it inside one ``lax.scan`` and ``vmap`` it over seeds.
+"""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import inspect
+import textwrap
+from collections.abc import Callable, Mapping
+from typing import Any, Literal
+
+ActorKind = Literal["deterministic", "tanh-gaussian"]
+
+CRITIC_METRICS = frozenset({"critic_loss", "q_mean", "q_ensemble_std", "target_mean"})
+"""Metrics that every gradient step computes: a chunk's log row averages them over every step.
+Any other metric (the actor's) is averaged over the steps whose ``actor_updated`` metric is true."""
+
+SHORT_NAMES = {"num_critics": "K", "confidence_level": "p"}
+"""The paper's symbols, used in run ids (``hopper-medium__eabc__K5__seed0``) and labels."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Algorithm:
+    """One ``--algo`` choice."""
+
+    name: str
+    """What ``eabc train --algo`` accepts, e.g. ``td3bc``."""
+    display_name: str
+    """The paper's name in tables and figures, e.g. ``TD3+BC``."""
+    preset: Any
+    """The default settings: a frozen dataclass whose fields carry one-line docstrings."""
+    init: Callable[..., Any]
+    """``init(key, obs_dim, act_dim, config) -> state``."""
+    update: Callable[..., tuple[Any, dict]]
+    """``update(state, batch, key, config, max_action) -> (state, metrics)``, pure."""
+    actor: ActorKind = "deterministic"
+    """deterministic: ``max_action * tanh(MLP(s))``; tanh-gaussian: the MLP's first half is the
+    mean, and the deterministic action is ``max_action * tanh(mean)``."""
+    preprocess: Callable[[Any], Any] | None = None
+    """``preprocess(dataset) -> dataset`` before training (e.g. IQL's reward scaling); the run
+    keeps the data as loaded."""
+    pretrain: Callable[..., Any] | None = None
+    """``pretrain(state, data, key, config, normalizer) -> state``, once before the first step of a
+    new run (e.g. MOPO's dynamics model); what it learns lives in the state, so it is saved."""
+    resolve: Callable[..., Any] | None = None
+    """``resolve(config, dataset_name, steps, given) -> config``: settings that depend on the data
+    or the run's length (``steps``; None when unknown) (Table 3's p, IQL's schedule), where the user did not set them (``given``
+    is the set of names they set)."""
+    step_metrics: frozenset[str] = CRITIC_METRICS
+    """Metrics averaged over every step of a chunk (see :data:`CRITIC_METRICS`)."""
+    steps_per_s: float = 60.0
+    """A cost hint for sweeps: steps/s of the preset on one process of the 2-core reference
+    machine (``benchmarks/algorithms.py``), hopper's shapes."""
+    cost: Callable[[Any], float] | None = None
+    """``cost(config)``: how many times slower than the preset these settings are (e.g. K / 10)."""
+    short_names: Mapping[str, str] = dataclasses.field(default_factory=lambda: dict(SHORT_NAMES))
+    """Short names of settings in run ids and labels (the paper's K and p by default)."""
+    report_settings: tuple[str, ...] = ()
+    """Settings that the results store keeps as columns and that ablation figures may vary."""
+    cli_flags: tuple[str, ...] = ()
+    """Settings that ``eabc train`` offers as typed flags (``--num-critics 5``); every other one
+    is reachable with ``--set KEY=VALUE``."""
+    column: float = 50.0
+    """Where its column goes in the paper's tables (Table 1's order, then Table 6's, then the
+    rest); ties by name."""
+
+    @property
+    def gaussian_actor(self) -> bool:
+        return self.actor == "tanh-gaussian"
+
+    def settings(self) -> set[str]:
+        """The names of every setting of this algorithm."""
+        return {f.name for f in dataclasses.fields(self.preset)}
+
+    def resolved(self, config: Any, dataset_name: str, steps: int | None, given: set[str]) -> Any:
+        """``config`` with the settings that depend on the data and the run resolved."""
+        if self.resolve is None:
+            return config
+        return self.resolve(config, dataset_name, steps, frozenset(given))
+
+    def relative_cost(self, config: Any) -> float:
+        return 1.0 if self.cost is None else float(self.cost(config))
+
+
+def field_docs(cls: type) -> dict[str, str]:
+    """The one-line docstrings under a config dataclass's fields (its bases' too), by name."""
+    docs: dict[str, str] = {}
+    for klass in reversed(cls.__mro__[:-1]):
+        try:
+            tree = ast.parse(textwrap.dedent(inspect.getsource(klass)))
+        except (OSError, TypeError, SyntaxError):
+            continue
+        body = tree.body[0].body if tree.body and isinstance(tree.body[0], ast.ClassDef) else []
+        for node, after in zip(body, body[1:]):
+            if (
+                isinstance(node, ast.AnnAssign)
+                and isinstance(node.target, ast.Name)
+                and isinstance(after, ast.Expr)
+                and isinstance(after.value, ast.Constant)
+                and isinstance(after.value.value, str)
+            ):
+                docs[node.target.id] = " ".join(after.value.value.split())
+    return docs
