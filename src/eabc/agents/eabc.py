@@ -30,6 +30,7 @@ variants of issue 14, each a switch of this one rule:
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Literal
 
 import flax.struct
@@ -335,15 +336,17 @@ def critic_step(state, batch: Batch, key, config: EABCConfig, max_action: float)
 def delayed_actor_step(
     state, critic, step, batch: Batch, key, config, max_action, keep=None, p=None
 ):
-    """Every ``policy_freq`` steps: an actor step, then Polyak averaging of both targets.
+    """Every ``policy_freq`` steps: an actor step (``keep``: a per-sample BC mask, or a function
+    that makes one, called on actor steps only), then Polyak averaging of both targets.
 
     Returns ``(actor, actor_opt, actor_target, critic_target), metrics`` (zeros when skipped).
     """
     actor_tx, _ = _optimizers(config)
 
     def actor_step(_):
+        mask = keep() if callable(keep) else keep  # a callable is evaluated on actor steps only
         grads, metrics = jax.grad(actor_loss, has_aux=True)(
-            state.actor, critic, batch, key, config, max_action, keep, p
+            state.actor, critic, batch, key, config, max_action, mask, p
         )
         updates, actor_opt = actor_tx.update(grads, state.actor_opt, state.actor)
         actor = optax.apply_updates(state.actor, updates)
@@ -367,7 +370,9 @@ def update(
     """One gradient step of Algorithm 1. Pure: the same inputs always give the same outputs."""
     critic_key, actor_key = jax.random.split(key)
     # The quantile rule reads the critics before this step's update (the authors' order).
-    keep = quantile_keep(state.critic, batch, config) if config.bc_weight == "quantile" else None
+    keep = None
+    if config.bc_weight == "quantile":  # evaluated inside the actor step, not on every step
+        keep = functools.partial(quantile_keep, state.critic, batch, config)
     p = state.controller["p"] if config.bc_weight == "auto" else None
     critic, critic_opt, critic_metrics = critic_step(state, batch, critic_key, config, max_action)
     step = state.step + 1
