@@ -42,9 +42,6 @@ AGENT = dict(num_critics=2, confidence_level=0.5, hidden_dims=(32, 32))
 WALL = ("wall_time", "steps_per_s", "wall_time_s")
 """Wall-clock fields, the only ones allowed to differ between a resumed and a straight run."""
 
-# Its tests share a module fixture: one worker runs them all (pytest-xdist --dist loadgroup).
-pytestmark = pytest.mark.xdist_group("faults")
-
 
 def start(tmp_path, name, dataset, agent=AGENT, **overrides):
     config = TrainConfig(**{**SMALL, **overrides})

@@ -18,9 +18,6 @@ SEEDS = (0, 1, 2)
 STEPS = np.arange(1, 7) * 5000
 PNG = b"\x89PNG\r\n\x1a\n"
 
-# Its tests share a module fixture: one worker runs them all (pytest-xdist --dist loadgroup).
-pytestmark = pytest.mark.xdist_group("report")
-
 
 def make_results(seed: int = 0) -> tuple[pd.DataFrame, pd.DataFrame]:
     """2 datasets x 3 algorithms x 3 seeds, plus EABC with K=5 (an ablation with 2 values of K)."""

@@ -18,9 +18,6 @@ from eabc.data import generate, zoo
 from eabc.data.loaders import load_file
 from eabc.training import online, zoo_build
 
-# Its tests share a module fixture: one worker runs them all (pytest-xdist --dist loadgroup).
-pytestmark = pytest.mark.xdist_group("zoo")
-
 
 @pytest.fixture(scope="module")
 def tiny_zoo(tmp_path_factory):
