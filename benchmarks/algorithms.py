@@ -46,7 +46,7 @@ def measure(algo: str, steps: int, repeats: int, seeds: int = 1) -> list[float]:
     """Total steps/s (summed over ``seeds`` vmapped seeds when seeds > 1)."""
     import jax
 
-    from eabc.training.trainer import train_chunk, train_chunk_seeds
+    from eabc.training.chunks import train_chunk, train_chunk_seeds
 
     data = fake_data(OBS_DIM, ACT_DIM)
     state, update = agent(algo)

@@ -144,7 +144,7 @@ def main() -> None:
     import jax
 
     from eabc.agents import eabc
-    from eabc.training.trainer import train_chunk
+    from eabc.training.chunks import train_chunk
 
     obs_dim, act_dim = SHAPES[args.env]
     data = fake_data(obs_dim, act_dim)

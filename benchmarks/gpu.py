@@ -5,7 +5,7 @@
 
 Measures, on JAX's default device:
 
-1. steps/s of the real training chunk (``trainer.train_chunk_seeds``: the scanned EABC update with
+1. steps/s of the real training chunk (``chunks.train_chunk_seeds``: the scanned EABC update with
    in-program batch sampling, vmapped over seeds) for K = 2 (TD3+BC's size) and K = 10, with 1, 5,
    25 and 75 seeds in one program, on a device-resident dataset of 1M hopper-shaped transitions;
 2. the wall time of one evaluation round for 75 policies (10 episodes of 1,000 steps each, the
@@ -51,7 +51,7 @@ def steps_per_s(k: int, seeds: int, steps: int, repeats: int, size: int) -> floa
     from speed import fake_data
 
     from eabc.agents import eabc
-    from eabc.training.trainer import train_chunk_seeds
+    from eabc.training.chunks import train_chunk_seeds
 
     data = fake_data(OBS_DIM, ACT_DIM, size)
     config = dataclasses.replace(eabc.PRESETS["eabc"], num_critics=k, confidence_level=0.5)

@@ -72,7 +72,7 @@ def measure(env: str, k: int, steps: int, repeats: int) -> list[float]:
     import jax
 
     from eabc.agents import eabc
-    from eabc.training.trainer import train_chunk
+    from eabc.training.chunks import train_chunk
 
     obs_dim, act_dim = SHAPES[env]
     data = fake_data(obs_dim, act_dim)

@@ -11,7 +11,7 @@ import pytest
 from handcalc import ACT, OBS, B, member
 
 from eabc.agents import dynamics, get_algorithm, mopo, morel
-from eabc.training import trainer
+from eabc.training import chunks, trainer
 
 SMALL = {"model_members": 3, "model_elites": 2, "model_hidden_dims": (8, 8), "hidden_dims": (8, 8)}
 
@@ -73,7 +73,7 @@ def test_dynamics_beats_predicting_the_mean_and_is_deterministic(pendulum_datase
     from eabc.data.dataset import Normalizer
 
     normalizer = Normalizer.fit(pendulum_dataset.observations)
-    data = trainer.device_data(pendulum_dataset, normalizer)
+    data = chunks.device_data(pendulum_dataset, normalizer)
     config = dynamics.DynamicsConfig(
         num_members=3, num_elites=2, hidden_dims=(64, 64), max_epochs=8
     )

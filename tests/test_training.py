@@ -11,7 +11,7 @@ import pytest
 
 from eabc import load_policy
 from eabc.experiments import results
-from eabc.training import checkpoint, trainer
+from eabc.training import checkpoint, health, trainer
 from eabc.training.trainer import TrainConfig
 
 SMALL = dict(
@@ -131,14 +131,14 @@ def test_learning_lifts_the_score_well_above_the_untrained_policy(tmp_path, pend
 
 
 def test_value_range_is_what_the_rewards_allow():
-    low, high = trainer.value_range(np.array([-1.0, 0.5, 2.0]), discount=0.9)
+    low, high = health.value_range(np.array([-1.0, 0.5, 2.0]), discount=0.9)
     np.testing.assert_allclose((low, high), (-10 - 3, 20 + 3), rtol=1e-6)
-    assert trainer.value_range(np.ones(3), discount=None) is None
+    assert health.value_range(np.ones(3), discount=None) is None
     # Positive rewards: critics starting near 0 are not out of range.
-    np.testing.assert_allclose(trainer.value_range(np.array([1.0, 3.0]), 0.9), (-3, 33), rtol=1e-6)
+    np.testing.assert_allclose(health.value_range(np.array([1.0, 3.0]), 0.9), (-3, 33), rtol=1e-6)
     rows = [{"step": 100, "q_mean": 5.0}, {"step": 200, "q_mean": 30.0}, {"step": 300}]
-    assert trainer.first_divergence(rows, (low, high)) == 200
-    assert trainer.first_divergence(rows[:1], (low, high)) is None
+    assert health.first_divergence(rows, (low, high)) == 200
+    assert health.first_divergence(rows[:1], (low, high)) is None
 
 
 def test_diverging_critics_are_reported(tmp_path, pendulum_dataset, capsys):

@@ -1,15 +1,16 @@
 """The offline training loop: compiled chunks of gradient steps between evaluations.
 
-The dataset lives in device memory; every chunk of ``log_interval`` steps is one ``lax.scan`` that
-samples its own mini-batches. Between chunks the loop logs, evaluates every ``eval_interval`` steps
-and checkpoints every ``checkpoint_interval`` steps, so that ``resume`` continues bit for bit.
+A run is started (:func:`start`) or resumed (:func:`resume`) into a :class:`Run`; :func:`train`
+and :func:`train_seeds` advance it in compiled chunks (:mod:`eabc.training.chunks`), and between
+chunks log, evaluate every ``eval_interval`` steps, check the run's health
+(:mod:`eabc.training.health`) and checkpoint every ``checkpoint_interval`` steps, so that
+``resume`` continues bit for bit.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
-import math
 import shutil
 import sys
 import time
@@ -22,13 +23,19 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from eabc.agents import Algorithm, get_algorithm, validation
-from eabc.agents.common import Batch
-from eabc.agents.contract import CRITIC_METRICS
 from eabc.data.dataset import Dataset, DatasetError, Normalizer
 from eabc.data.sources import load_dataset
 from eabc.evaluation import Evaluator, Policy, check_spaces
 from eabc.training import checkpoint
 from eabc.training.checkpoint import CONFIG, read_config
+from eabc.training.chunks import device_data, summarize_metrics, train_chunk, train_chunk_seeds
+from eabc.training.health import (
+    divergence_warning,
+    first_divergence,
+    in_range,
+    non_finite,
+    value_range,
+)
 from eabc.training.lock import RunLock
 from eabc.training.logger import CURVE, LOG, RunLogger, plot_curve
 
@@ -310,60 +317,6 @@ def _prepared(algorithm: Algorithm, dataset: Dataset) -> Dataset:
 _init_agent = jax.jit(lambda init, *args: init(*args), static_argnums=(0, 2, 3, 4))
 
 
-def device_data(dataset: Dataset, normalizer: Normalizer) -> Batch:
-    """The whole dataset as one device-resident batch (observations normalised once, up front)."""
-    return Batch(
-        observations=jnp.asarray(normalizer(dataset.observations)),
-        actions=jnp.asarray(dataset.actions),
-        rewards=jnp.asarray(dataset.rewards),
-        next_observations=jnp.asarray(normalizer(dataset.next_observations)),
-        dones=jnp.asarray(dataset.terminals, jnp.float32),
-    )
-
-
-@functools.partial(jax.jit, static_argnames=("update", "batch_size", "length"))
-def train_chunk(agent_state, key, data: Batch, update, batch_size: int, length: int):
-    """``length`` gradient steps in one compiled scan; batches are sampled with replacement inside."""
-    size = data.rewards.shape[0]
-
-    def step(carry, _):
-        agent_state, key = carry
-        key, sample_key, update_key = jax.random.split(key, 3)
-        index = jax.random.randint(sample_key, (batch_size,), 0, size)
-        batch = jax.tree.map(lambda x: x[index], data)
-        agent_state, metrics = update(agent_state, batch, update_key)
-        return (agent_state, key), metrics
-
-    # Two steps per loop iteration (TD3's actor period): +6% steps/s at K = 2 on CPU, same results.
-    (agent_state, key), metrics = jax.lax.scan(
-        step, (agent_state, key), None, length=length, unroll=2
-    )
-    return agent_state, key, metrics
-
-
-@functools.partial(jax.jit, static_argnames=("update", "batch_size", "length"))
-def train_chunk_seeds(agent_states, keys, data: Batch, update, batch_size: int, length: int):
-    """:func:`train_chunk` for a stack of seeds (leading axis of states and keys), one program."""
-    chunk = functools.partial(
-        train_chunk.__wrapped__, update=update, batch_size=batch_size, length=length
-    )
-    return jax.vmap(chunk, in_axes=(0, 0, None))(agent_states, keys, data)
-
-
-def summarize_metrics(
-    metrics: dict[str, np.ndarray], step_metrics: frozenset[str] = CRITIC_METRICS
-) -> dict[str, float]:
-    """Means over a chunk; metrics other than ``step_metrics`` (the algorithm's contract says which
-    its every step computes) only over the steps that updated the actor."""
-    actor_steps = metrics.pop("actor_updated", None)
-    out = {}
-    for key, values in metrics.items():
-        if actor_steps is not None and key not in step_metrics and actor_steps.any():
-            values = values[actor_steps.astype(bool)]
-        out[key] = float(np.mean(values))
-    return out
-
-
 def policy_fn(run: Run) -> Policy:
     """The run's current actor as a NumPy policy on raw observations."""
     actor = jax.device_get(run.state["agent"].actor)
@@ -455,7 +408,10 @@ def _train_seeds(runs: list[Run], progress: bool) -> list[dict[str, Any]]:
             for run, row, logger in zip(runs, rows, loggers):
                 # Warn at the first flagged row only; the log is scanned only when a row is flagged.
                 if row.get("q_out_of_range") and first_divergence(logger.rows, q_range) == run.step:
-                    tqdm.write(divergence_warning(run, row["q_mean"], q_range), file=sys.stderr)
+                    tqdm.write(
+                        divergence_warning(run.run_dir.name, run.step, row["q_mean"], q_range),
+                        file=sys.stderr,
+                    )
             bar.update(length)
             bar.set_postfix(_postfix(rows[0], first.state["evaluations"]), refresh=False)
             if any(run.diverged_step is not None for run in runs):
@@ -480,52 +436,6 @@ def _train_seeds(runs: list[Run], progress: bool) -> list[dict[str, Any]]:
         summaries[-1]["diverged_step"] = run.diverged_step
         checkpoint.save_json(run.run_dir / SUMMARY, summaries[-1])
     return summaries
-
-
-def non_finite(row: dict[str, float]) -> list[str]:
-    """The losses and Q statistics of a log row that are NaN or inf."""
-    watched = [k for k in row if k.endswith("_loss") or k in ("q_mean", "target_mean")]
-    return [k for k in watched if not math.isfinite(row[k])]
-
-
-def value_range(rewards: np.ndarray, discount: float | None) -> tuple[float, float] | None:
-    """The Q values a critic can honestly reach on these rewards, with a 10% margin.
-
-    No policy collects more than ``max(0, max r) / (1 - gamma)`` or less than
-    ``min(0, min r) / (1 - gamma)`` in discounted return (0 is inside: an episode can end, and
-    critics start near 0), so a mean Q outside this range (widened by 10% of its width, room for
-    entropy bonuses) is extrapolation error running away, not learning. None without a discount.
-    """
-    if discount is None or not 0.0 <= discount < 1.0:
-        return None
-    low = min(0.0, float(np.min(rewards))) / (1 - discount)
-    high = max(0.0, float(np.max(rewards))) / (1 - discount)
-    margin = 0.1 * (high - low)
-    return low - margin, high + margin
-
-
-def first_divergence(rows: list[dict[str, float]], q_range: tuple[float, float]) -> int | None:
-    """The first logged step whose mean Q lies outside ``q_range`` (None if none does)."""
-    for row in rows:
-        q = row.get("q_mean", math.nan)
-        if not math.isnan(q) and not in_range(q, q_range):
-            return int(row["step"])
-    return None
-
-
-def in_range(q: float, q_range: tuple[float, float]) -> bool:
-    return q_range[0] <= q <= q_range[1]
-
-
-def divergence_warning(run: Run, q_mean: float, q_range: tuple[float, float]) -> str:
-    return (
-        f"warning: {run.run_dir.name} at step {run.step}: mean Q {q_mean:,.0f} lies outside "
-        f"[{q_range[0]:,.0f}, {q_range[1]:,.0f}], the discounted returns this data's rewards allow: "
-        "the critics are diverging (extrapolation error on out-of-data actions), and scores from "
-        "here on rest on a broken critic. For EABC, more behaviour cloning (a higher "
-        "--confidence-level) is what stopped it on our hopper-medium; --pessimism min only slowed "
-        "it. Training goes on; summary.json records the step as q_out_of_range_step."
-    )
 
 
 def _check_same_setting(runs: list[Run]) -> None:

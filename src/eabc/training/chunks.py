@@ -1,0 +1,73 @@
+"""The compiled programs of offline training: chunks of gradient steps on device-resident data.
+
+The dataset lives in device memory; every chunk of ``log_interval`` steps is one ``lax.scan`` that
+samples its own mini-batches (:func:`train_chunk`), or the same for a stack of seeds in one program
+(:func:`train_chunk_seeds`). The trainer calls them between its evaluations and checkpoints; the
+benchmarks time them directly.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from eabc.agents.common import Batch
+from eabc.agents.contract import CRITIC_METRICS
+from eabc.data.dataset import Dataset, Normalizer
+
+
+def device_data(dataset: Dataset, normalizer: Normalizer) -> Batch:
+    """The whole dataset as one device-resident batch (observations normalised once, up front)."""
+    return Batch(
+        observations=jnp.asarray(normalizer(dataset.observations)),
+        actions=jnp.asarray(dataset.actions),
+        rewards=jnp.asarray(dataset.rewards),
+        next_observations=jnp.asarray(normalizer(dataset.next_observations)),
+        dones=jnp.asarray(dataset.terminals, jnp.float32),
+    )
+
+
+@functools.partial(jax.jit, static_argnames=("update", "batch_size", "length"))
+def train_chunk(agent_state, key, data: Batch, update, batch_size: int, length: int):
+    """``length`` gradient steps in one compiled scan; batches are sampled with replacement inside."""
+    size = data.rewards.shape[0]
+
+    def step(carry, _):
+        agent_state, key = carry
+        key, sample_key, update_key = jax.random.split(key, 3)
+        index = jax.random.randint(sample_key, (batch_size,), 0, size)
+        batch = jax.tree.map(lambda x: x[index], data)
+        agent_state, metrics = update(agent_state, batch, update_key)
+        return (agent_state, key), metrics
+
+    # Two steps per loop iteration (TD3's actor period): +6% steps/s at K = 2 on CPU, same results.
+    (agent_state, key), metrics = jax.lax.scan(
+        step, (agent_state, key), None, length=length, unroll=2
+    )
+    return agent_state, key, metrics
+
+
+@functools.partial(jax.jit, static_argnames=("update", "batch_size", "length"))
+def train_chunk_seeds(agent_states, keys, data: Batch, update, batch_size: int, length: int):
+    """:func:`train_chunk` for a stack of seeds (leading axis of states and keys), one program."""
+    chunk = functools.partial(
+        train_chunk.__wrapped__, update=update, batch_size=batch_size, length=length
+    )
+    return jax.vmap(chunk, in_axes=(0, 0, None))(agent_states, keys, data)
+
+
+def summarize_metrics(
+    metrics: dict[str, np.ndarray], step_metrics: frozenset[str] = CRITIC_METRICS
+) -> dict[str, float]:
+    """Means over a chunk; metrics other than ``step_metrics`` (the algorithm's contract says which
+    its every step computes) only over the steps that updated the actor."""
+    actor_steps = metrics.pop("actor_updated", None)
+    out = {}
+    for key, values in metrics.items():
+        if actor_steps is not None and key not in step_metrics and actor_steps.any():
+            values = values[actor_steps.astype(bool)]
+        out[key] = float(np.mean(values))
+    return out
