@@ -13,7 +13,7 @@ import jax
 import optax
 
 from eabc import networks
-from eabc.agents.common import Batch
+from eabc.agents.common import Batch, apply_gradients
 from eabc.agents.contract import Algorithm
 
 
@@ -53,8 +53,9 @@ def update(
 ) -> tuple[BCState, dict[str, jax.Array]]:
     del key  # deterministic
     grads, metrics = jax.grad(bc_loss, has_aux=True)(state.actor, batch, max_action)
-    updates, actor_opt = optax.adam(config.actor_lr).update(grads, state.actor_opt, state.actor)
-    actor = optax.apply_updates(state.actor, updates)
+    actor, actor_opt = apply_gradients(
+        optax.adam(config.actor_lr), grads, state.actor_opt, state.actor
+    )
     return BCState(actor, actor_opt, state.step + 1), metrics
 
 

@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import optax
 
 from eabc import networks
-from eabc.agents.common import Batch
+from eabc.agents.common import Batch, apply_gradients
 from eabc.agents.contract import Algorithm
 
 """The actor outputs a tanh-Gaussian; its deterministic action is ``tanh(mean)``."""
@@ -349,28 +349,25 @@ def step(state, batch: Batch, key, config: BEARConfig, max_action: float, critic
     vae_key, critic_key, actor_key = jax.random.split(key, 3)
 
     grads, vae_metrics = jax.grad(vae_loss, has_aux=True)(state.vae, batch, vae_key, max_action)
-    updates, vae_opt = vae_tx.update(grads, state.vae_opt, state.vae)
-    vae = optax.apply_updates(state.vae, updates)
+    vae, vae_opt = apply_gradients(vae_tx, grads, state.vae_opt, state.vae)
 
     grads, (_, _, critic_metrics) = jax.grad(critic_loss, has_aux=True)(
         state.critic, state, batch, critic_key, config, max_action, critics
     )
-    updates, critic_opt = critic_tx.update(grads, state.critic_opt, state.critic)
-    critic = optax.apply_updates(state.critic, updates)
+    critic, critic_opt = apply_gradients(critic_tx, grads, state.critic_opt, state.critic)
 
     # The actor uses the critics just updated and the VAE just updated, as in the authors' code.
     grads, (divergence, actor_metrics) = jax.grad(actor_loss, has_aux=True)(
         state.actor, critic, vae, state.log_lagrange, state.step, batch, actor_key, config,
         max_action, critics,
     )  # fmt: skip
-    updates, actor_opt = actor_tx.update(grads, state.actor_opt, state.actor)
-    actor = optax.apply_updates(state.actor, updates)
+    actor, actor_opt = apply_gradients(actor_tx, grads, state.actor_opt, state.actor)
 
     grad = jax.grad(lagrange_loss)(state.log_lagrange, jax.lax.stop_gradient(divergence), config)
-    updates, lagrange_opt = lagrange_tx.update(grad, state.lagrange_opt, state.log_lagrange)
-    log_lagrange = jnp.clip(
-        optax.apply_updates(state.log_lagrange, updates), MIN_LOG_LAGRANGE, config.max_log_lagrange
+    log_lagrange, lagrange_opt = apply_gradients(
+        lagrange_tx, grad, state.lagrange_opt, state.log_lagrange
     )
+    log_lagrange = jnp.clip(log_lagrange, MIN_LOG_LAGRANGE, config.max_log_lagrange)
 
     new_state = state.replace(
         actor=actor,

@@ -1,9 +1,10 @@
-"""What every agent shares: the mini-batch type."""
+"""What every agent shares: the mini-batch type and the optimiser step."""
 
 from __future__ import annotations
 
 import flax.struct
 import jax
+import optax
 
 
 @flax.struct.dataclass
@@ -16,3 +17,9 @@ class Batch:
     next_observations: jax.Array
     dones: jax.Array
     """1.0 where the episode terminated (not where it was truncated by a time limit)."""
+
+
+def apply_gradients(tx: optax.GradientTransformation, grads, opt_state, params):
+    """One optimiser step: ``(new params, new optimiser state)``."""
+    updates, opt_state = tx.update(grads, opt_state, params)
+    return optax.apply_updates(params, updates), opt_state

@@ -28,7 +28,7 @@ import optax
 
 from eabc import networks
 from eabc.agents import sac
-from eabc.agents.common import Batch
+from eabc.agents.common import Batch, apply_gradients
 from eabc.agents.contract import Algorithm
 
 """The actor outputs a tanh-Gaussian; its deterministic action is ``tanh(mean)``."""
@@ -204,26 +204,24 @@ def update(
     grads, (gap, critic_metrics) = jax.grad(critic_loss, has_aux=True)(
         state.critic, state, batch, critic_key, config, max_action
     )
-    updates, critic_opt = critic_tx.update(grads, state.critic_opt, state.critic)
-    critic = optax.apply_updates(state.critic, updates)
+    critic, critic_opt = apply_gradients(critic_tx, grads, state.critic_opt, state.critic)
 
     grads, (log_prob, actor_metrics) = jax.grad(sac.actor_loss, has_aux=True)(
         state.actor, state.critic, state.log_alpha, batch, actor_key, max_action
     )
-    updates, actor_opt = actor_tx.update(grads, state.actor_opt, state.actor)
-    actor = optax.apply_updates(state.actor, updates)
+    actor, actor_opt = apply_gradients(actor_tx, grads, state.actor_opt, state.actor)
 
     entropy_gap = jax.lax.stop_gradient(log_prob + state.target_entropy).mean()
     alpha_grad = -entropy_gap  # d/d(log_alpha) of -log_alpha * mean(log_pi + target_entropy)
-    updates, alpha_opt = alpha_tx.update(alpha_grad, state.alpha_opt, state.log_alpha)
-    log_alpha = optax.apply_updates(state.log_alpha, updates)
+    log_alpha, alpha_opt = apply_gradients(alpha_tx, alpha_grad, state.alpha_opt, state.log_alpha)
 
     metrics = {**critic_metrics, **actor_metrics, "alpha": jnp.exp(state.log_alpha)}
     log_alpha_prime, alpha_prime_opt = state.log_alpha_prime, state.alpha_prime_opt
     if config.lagrange:
         grad = jax.grad(alpha_prime_loss)(state.log_alpha_prime, gap, config)
-        updates, alpha_prime_opt = alpha_prime_tx.update(grad, alpha_prime_opt, log_alpha_prime)
-        log_alpha_prime = optax.apply_updates(log_alpha_prime, updates)
+        log_alpha_prime, alpha_prime_opt = apply_gradients(
+            alpha_prime_tx, grad, alpha_prime_opt, log_alpha_prime
+        )
         metrics["alpha_prime"] = alpha_prime(state.log_alpha_prime)
 
     new_state = state.replace(

@@ -28,7 +28,7 @@ import numpy as np
 import optax
 
 from eabc import networks
-from eabc.agents.common import Batch
+from eabc.agents.common import Batch, apply_gradients
 
 Params = dict
 
@@ -144,8 +144,7 @@ def _epoch(params, opt_state, order, data: Batch, y, config: DynamicsConfig):
         loss, grads = jax.value_and_grad(training_loss)(
             params, data.observations[index], data.actions[index], y[index], config
         )
-        updates, opt_state = tx.update(grads, opt_state, params)
-        return (optax.apply_updates(params, updates), opt_state), loss
+        return apply_gradients(tx, grads, opt_state, params), loss
 
     (params, opt_state), losses = jax.lax.scan(step, (params, opt_state), order.transpose(1, 0, 2))
     return params, opt_state, losses.mean()

@@ -39,7 +39,7 @@ import jax.numpy as jnp
 import optax
 
 from eabc import networks
-from eabc.agents.common import Batch
+from eabc.agents.common import Batch, apply_gradients
 from eabc.agents.contract import Algorithm
 from eabc.data import tasks
 
@@ -329,8 +329,8 @@ def critic_step(state, batch: Batch, key, config: EABCConfig, max_action: float)
     grads, metrics = jax.grad(critic_loss, has_aux=True)(
         state.critic, state.critic_target, state.actor_target, batch, key, config, max_action
     )
-    updates, critic_opt = critic_tx.update(grads, state.critic_opt, state.critic)
-    return optax.apply_updates(state.critic, updates), critic_opt, metrics
+    critic, critic_opt = apply_gradients(critic_tx, grads, state.critic_opt, state.critic)
+    return critic, critic_opt, metrics
 
 
 def delayed_actor_step(
@@ -348,8 +348,7 @@ def delayed_actor_step(
         grads, metrics = jax.grad(actor_loss, has_aux=True)(
             state.actor, critic, batch, key, config, max_action, mask, p
         )
-        updates, actor_opt = actor_tx.update(grads, state.actor_opt, state.actor)
-        actor = optax.apply_updates(state.actor, updates)
+        actor, actor_opt = apply_gradients(actor_tx, grads, state.actor_opt, state.actor)
         targets = (
             networks.polyak(state.actor_target, actor, config.tau),
             networks.polyak(state.critic_target, critic, config.tau),

@@ -31,7 +31,7 @@ import numpy as np
 import optax
 
 from eabc import networks
-from eabc.agents.common import Batch
+from eabc.agents.common import Batch, apply_gradients
 from eabc.agents.contract import Algorithm
 
 if TYPE_CHECKING:
@@ -199,19 +199,16 @@ def update(
     grads, value_metrics = jax.grad(value_loss, has_aux=True)(
         state.value, state.critic_target, batch, config
     )
-    updates, value_opt = value_tx.update(grads, state.value_opt, state.value)
-    value = optax.apply_updates(state.value, updates)
+    value, value_opt = apply_gradients(value_tx, grads, state.value_opt, state.value)
 
     actor_params = (state.actor, state.log_std)
     grads, actor_metrics = jax.grad(actor_loss, has_aux=True)(
         actor_params, value, state.critic_target, batch, config, max_action
     )
-    updates, actor_opt = actor_tx.update(grads, state.actor_opt, actor_params)
-    actor, log_std = optax.apply_updates(actor_params, updates)
+    actor, log_std, actor_opt = apply_gradients(actor_tx, grads, state.actor_opt, actor_params)
 
     grads, critic_metrics = jax.grad(critic_loss, has_aux=True)(state.critic, value, batch, config)
-    updates, critic_opt = critic_tx.update(grads, state.critic_opt, state.critic)
-    critic = optax.apply_updates(state.critic, updates)
+    critic, critic_opt = apply_gradients(critic_tx, grads, state.critic_opt, state.critic)
 
     new_state = state.replace(
         actor=actor,

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import optax
 
 from eabc import networks
-from eabc.agents.common import Batch
+from eabc.agents.common import Batch, apply_gradients
 from eabc.agents.contract import Algorithm
 
 """The actor outputs a tanh-Gaussian; its deterministic action is ``tanh(mean)``."""
@@ -192,21 +192,18 @@ def update(
     grads, critic_metrics = jax.grad(critic_loss, has_aux=True)(
         state.critic, state, batch, critic_key, config, max_action
     )
-    updates, critic_opt = critic_tx.update(grads, state.critic_opt, state.critic)
-    critic = optax.apply_updates(state.critic, updates)
+    critic, critic_opt = apply_gradients(critic_tx, grads, state.critic_opt, state.critic)
 
     grads, (log_prob, actor_metrics) = jax.grad(actor_loss, has_aux=True)(
         state.actor, critic, state.log_alpha, batch, actor_key, max_action
     )
-    updates, actor_opt = actor_tx.update(grads, state.actor_opt, state.actor)
-    actor = optax.apply_updates(state.actor, updates)
+    actor, actor_opt = apply_gradients(actor_tx, grads, state.actor_opt, state.actor)
 
     log_alpha, alpha_opt = state.log_alpha, state.alpha_opt
     if config.autotune:
         entropy_gap = jax.lax.stop_gradient(log_prob + state.target_entropy).mean()
         alpha_grad = -entropy_gap  # d/d(log_alpha) of -log_alpha * mean(log_pi + target_entropy)
-        updates, alpha_opt = alpha_tx.update(alpha_grad, alpha_opt, log_alpha)
-        log_alpha = optax.apply_updates(log_alpha, updates)
+        log_alpha, alpha_opt = apply_gradients(alpha_tx, alpha_grad, alpha_opt, log_alpha)
 
     new_state = state.replace(
         actor=actor,

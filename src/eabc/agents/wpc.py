@@ -18,7 +18,7 @@ import optax
 
 from eabc import networks
 from eabc.agents import eabc
-from eabc.agents.common import Batch
+from eabc.agents.common import Batch, apply_gradients
 from eabc.agents.contract import Algorithm
 
 
@@ -72,8 +72,9 @@ def update(
     grads, (advantage, value_metrics) = jax.grad(value_loss, has_aux=True)(
         state.value, state.critic_target, batch
     )
-    updates, value_opt = optax.adam(config.value_lr).update(grads, state.value_opt, state.value)
-    value = optax.apply_updates(state.value, updates)
+    value, value_opt = apply_gradients(
+        optax.adam(config.value_lr), grads, state.value_opt, state.value
+    )
     step = state.step + 1
     keep = advantage > 0
     (actor, actor_opt, actor_target, critic_target), actor_metrics = eabc.delayed_actor_step(
