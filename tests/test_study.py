@@ -102,6 +102,7 @@ def test_stability_table_says_where_the_critics_fail():
             "q_mean_max": [2000.0, 4000.0, 150.0, 120.0],
             "q_mean_last": [1000.0, -500.0, 100.0, 100.0],
             "policy_q_std_last": [10.0, 10.0, nan, 5.0],
+            "q_ensemble_std_last": [5.0, 2.5, nan, 6.0],
             "bc_fraction_last": [0.25, 0.25, 1.0, 0.5],
         }
     )
@@ -112,7 +113,11 @@ def test_stability_table_says_where_the_critics_fail():
     assert eabc["first_out_of_range_step"] == 11_000
     assert eabc["q_mean_max"] == 3000.0
     assert math.isclose(eabc["policy_spread"], (0.01 + 0.02) / 2)
+    assert math.isclose(eabc["spread_ratio"], (2.0 + 4.0) / 2)  # the policy off the data's support
     assert math.isclose(eabc["score"], 7.0) and math.isclose(eabc["score_std"], 2**0.5 * 2)
     text = report.stability_to_markdown(table)
-    assert "| hopper-medium | EABC | 2 | 7.0 ± 2.8 | 2/2 | 11,000 | 3,000 | 1.50% | 0.25 |" in text
-    assert "| hopper-medium | TD3+BC | 1 | 48.0 | 0/1 |  | 150 |  | 1.00 |" in text
+    assert (
+        "| hopper-medium | EABC | 2 | 7.0 ± 2.8 | 2/2 | 11,000 | 3,000 | 1.50% | 3.00 | 0.25 |"
+        in text
+    )
+    assert "| hopper-medium | TD3+BC | 1 | 48.0 | 0/1 |  | 150 |  |  | 1.00 |" in text

@@ -322,7 +322,9 @@ def stability_table(runs: pd.DataFrame) -> pd.DataFrame:
     ``first_out_of_range_step`` (the earliest over its runs); ``q_mean_max`` (median over runs of
     the largest logged mean Q); ``policy_spread`` (median of ``policy_q_std / |q_mean|`` at the
     last log row: how much of the value ``mean - std`` subtracts at the policy's actions);
-    ``bc_fraction`` (median at the last row: the share of samples whose BC term was on).
+    ``spread_ratio`` (median of ``policy_q_std / q_ensemble_std`` at the last row: above 1 the
+    policy acts where the ensemble is less sure than at the data's own actions); ``bc_fraction``
+    (median at the last row: the share of samples whose BC term was on).
     """
     runs = _labelled(runs)
     rows = []
@@ -331,6 +333,7 @@ def stability_table(runs: pd.DataFrame) -> pd.DataFrame:
         out = numeric("q_out_of_range_step")
         q_last = numeric("q_mean_last")
         spread = numeric("policy_q_std_last")
+        data_spread = numeric("q_ensemble_std_last")
         scores = numeric("final_score").dropna()
         rows.append(
             {
@@ -344,6 +347,9 @@ def stability_table(runs: pd.DataFrame) -> pd.DataFrame:
                 "q_mean_max": numeric("q_mean_max").median() if "q_mean_max" in group else math.nan,
                 "policy_spread": (spread / q_last.abs()).median()
                 if spread is not None
+                else math.nan,
+                "spread_ratio": (spread / data_spread).median()
+                if spread is not None and data_spread is not None
                 else math.nan,
                 "bc_fraction": numeric("bc_fraction_last").median()
                 if "bc_fraction_last" in group
@@ -363,8 +369,8 @@ def stability_to_markdown(table: pd.DataFrame) -> str:
 
     lines = [
         "| Dataset | Algorithm | runs | score | out of range | first step out | max mean Q | "
-        "spread at pi | BC fraction |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|",
+        "spread at pi | spread ratio | BC fraction |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in table.itertuples(index=False):
         score = fmt(r.score, "{:.1f}") + (
@@ -374,7 +380,8 @@ def stability_to_markdown(table: pd.DataFrame) -> str:
             f"| {r.dataset} | {display_name(r.label)} | {r.runs} | {score} | "
             f"{r.out_of_range}/{r.runs} | "
             f"{fmt(r.first_out_of_range_step, '{:,.0f}')} | {fmt(r.q_mean_max, '{:,.0f}')} | "
-            f"{fmt(r.policy_spread, '{:.2%}')} | {fmt(r.bc_fraction, '{:.2f}')} |"
+            f"{fmt(r.policy_spread, '{:.2%}')} | {fmt(r.spread_ratio, '{:.2f}')} | "
+            f"{fmt(r.bc_fraction, '{:.2f}')} |"
         )
     return "\n".join(lines) + "\n"
 
@@ -506,8 +513,9 @@ def write_report(
         "## Stability: where the critics fail\n",
         "Per dataset and algorithm: runs whose mean Q left the range the rewards allow, the "
         "first such step, the largest mean Q (median over runs), the ensemble's spread at the "
-        "policy's actions relative to |mean Q| and the share of samples with the BC term on "
-        "(both at the last log row). [stability.md](stability.md); the results as CSV: "
+        "policy's actions relative to |mean Q|, the spread ratio (that spread over the spread at "
+        "the data's actions: above 1 the policy acts where the ensemble is less sure than on "
+        "the data) and the share of samples with the BC term on (all at the last log row). [stability.md](stability.md); the results as CSV: "
         "[runs.csv](runs.csv), "
         "[evaluations.csv](evaluations.csv).\n",
         stability,
