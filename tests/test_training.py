@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from eabc import load_policy
+from eabc.agents import get_algorithm
 from eabc.experiments import results
 from eabc.training import checkpoint, health, trainer
 from eabc.training.trainer import TrainConfig
@@ -227,3 +228,13 @@ def test_tensorboard_keeps_every_point_of_log_csv_through_resumes(
     content = events.PluginTagToContent("hparams")["_hparams_/session_start_info"]
     hparams = plugin_data_pb2.HParamsPluginData.FromString(content).session_start_info.hparams
     assert hparams["algo"].string_value == "bc" and hparams["steps"].number_value == 400
+
+
+@pytest.mark.parametrize("algo", ["eabc", "sac-n"])
+def test_the_fast_compiled_init_gives_the_default_compiled_parameters_bit_for_bit(algo):
+    algorithm = get_algorithm(algo)
+    key = jax.random.PRNGKey(7)
+    fast = trainer._init_agent(algorithm.init, key, 11, 3, algorithm.preset)
+    default = jax.jit(lambda k: algorithm.init(k, 11, 3, algorithm.preset))(key)
+    for a, b in zip(jax.tree.leaves(fast), jax.tree.leaves(default), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

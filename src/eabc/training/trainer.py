@@ -314,7 +314,14 @@ def _prepared(algorithm: Algorithm, dataset: Dataset) -> Dataset:
 
 
 # One compiled program rather than dozens of eagerly compiled operations (and cacheable on disk).
-_init_agent = jax.jit(lambda init, *args: init(*args), static_argnums=(0, 2, 3, 4))
+# It runs once, so LLVM's O1 is enough: the same parameters bit for bit as XLA's default O3
+# (tests/test_training.py), compiled in about half the time (6.6 -> 3.5 s for EABC's, 14 -> 7 s
+# for BEAR's on the busy 2-core AVX2 host).
+_init_agent = jax.jit(
+    lambda init, *args: init(*args),
+    static_argnums=(0, 2, 3, 4),
+    compiler_options={"xla_backend_optimization_level": 1},
+)
 
 
 def policy_fn(run: Run) -> Policy:
