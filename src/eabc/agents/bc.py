@@ -8,11 +8,10 @@ from __future__ import annotations
 
 import dataclasses
 
-import flax.struct
 import jax
 import optax
 
-from eabc import networks
+from eabc import networks, pytree
 from eabc.agents.common import Batch, apply_gradients
 from eabc.agents.contract import Algorithm
 
@@ -30,7 +29,7 @@ class BCConfig:
 PRESETS = {"bc": BCConfig()}
 
 
-@flax.struct.dataclass
+@pytree.dataclass
 class BCState:
     actor: networks.Params
     actor_opt: optax.OptState

@@ -25,12 +25,11 @@ from __future__ import annotations
 import dataclasses
 from typing import Literal
 
-import flax.struct
 import jax
 import jax.numpy as jnp
 import optax
 
-from eabc import networks
+from eabc import networks, pytree
 from eabc.agents.common import Batch, apply_gradients
 from eabc.agents.contract import Algorithm
 
@@ -113,7 +112,7 @@ class BEARConfig:
 PRESETS: dict[str, BEARConfig] = {"bear": BEARConfig()}
 
 
-@flax.struct.dataclass
+@pytree.dataclass
 class BEARState:
     actor: networks.Params
     actor_target: networks.Params

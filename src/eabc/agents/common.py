@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
-import flax.struct
 import jax
 import optax
 
+from eabc import pytree
 
-@flax.struct.dataclass
+
+@pytree.dataclass
 class Batch:
     """A mini-batch of transitions (observations already normalised)."""
 

@@ -3,7 +3,7 @@ may know of an algorithm, in one typed description defined in the algorithm's ow
 
 An algorithm file ends with ``ALGORITHMS = (Algorithm(...), ...)``; ``eabc.agents`` registers every
 file listed in its one tuple of modules. Generic code asks the description and never names an
-algorithm or its settings. The state ``init`` returns is a pytree (a flax struct dataclass) with
+algorithm or its settings. The state ``init`` returns is a pytree (a dataclass of :mod:`eabc.pytree`) with
 ``.actor`` (the policy's parameters) and ``.step`` (gradient steps taken); ``update`` is pure, so the
 trainer can run it inside one ``lax.scan`` and ``vmap`` it over seeds.
 """

@@ -20,13 +20,12 @@ from __future__ import annotations
 
 import dataclasses
 
-import flax.struct
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
 
-from eabc import networks
+from eabc import networks, pytree
 from eabc.agents import sac
 from eabc.agents.common import Batch, apply_gradients
 from eabc.agents.contract import Algorithm
@@ -89,7 +88,7 @@ PRESETS: dict[str, CQLConfig] = {
 }
 
 
-@flax.struct.dataclass
+@pytree.dataclass
 class CQLState(sac.SACState):
     log_alpha_prime: jax.Array = None
     """log(alpha'), only trained with ``lagrange``."""

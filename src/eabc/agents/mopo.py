@@ -25,10 +25,10 @@ import dataclasses
 import sys
 from typing import Any
 
-import flax.struct
 import jax
 import jax.numpy as jnp
 
+from eabc import pytree
 from eabc.agents import dynamics, sac
 from eabc.agents.common import Batch
 from eabc.agents.contract import Algorithm
@@ -159,7 +159,7 @@ def resolve(config: MOPOConfig, dataset_name: str, steps: int, given: frozenset[
     return dataclasses.replace(config, **updates)
 
 
-@flax.struct.dataclass
+@pytree.dataclass
 class MOPOState(sac.SACState):
     model: dynamics.Params = None
     """The dynamics ensemble (trained by :func:`pretrain`)."""

@@ -18,12 +18,11 @@ from __future__ import annotations
 
 import dataclasses
 
-import flax.struct
 import jax
 import jax.numpy as jnp
 import optax
 
-from eabc import networks
+from eabc import networks, pytree
 from eabc.agents.common import Batch, apply_gradients
 from eabc.agents.contract import Algorithm
 
@@ -89,7 +88,7 @@ def online_preset(env: str) -> SACConfig:
     return ONLINE_PRESETS.get(env, PRESETS["sac"])
 
 
-@flax.struct.dataclass
+@pytree.dataclass
 class SACState:
     actor: networks.Params
     critic: networks.Params
@@ -99,7 +98,7 @@ class SACState:
     critic_opt: optax.OptState
     alpha_opt: optax.OptState
     step: jax.Array
-    target_entropy: float = flax.struct.field(pytree_node=False, default=0.0)
+    target_entropy: float = pytree.field(static=True, default=0.0)
 
 
 def _optimizers(config: SACConfig) -> tuple[optax.GradientTransformation, ...]:

@@ -20,11 +20,10 @@ from __future__ import annotations
 
 import dataclasses
 
-import flax.struct
 import jax
 import jax.numpy as jnp
 
-from eabc import networks
+from eabc import networks, pytree
 from eabc.agents import bear
 from eabc.agents.bear import BEARState
 from eabc.agents.common import Batch
@@ -95,7 +94,7 @@ class UWACConfig(bear.BEARConfig):
 PRESETS: dict[str, UWACConfig] = {"uwac": UWACConfig()}
 
 
-@flax.struct.dataclass
+@pytree.dataclass
 class UWACState(BEARState):
     spectral_u: networks.Params = None
     """Power-iteration vectors of the critics' layers (``u{i}: [K, out]``)."""

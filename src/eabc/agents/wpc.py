@@ -12,11 +12,10 @@ from __future__ import annotations
 
 import dataclasses
 
-import flax.struct
 import jax
 import optax
 
-from eabc import networks
+from eabc import networks, pytree
 from eabc.agents import eabc
 from eabc.agents.common import Batch, apply_gradients
 from eabc.agents.contract import Algorithm
@@ -37,7 +36,7 @@ class WPCConfig(eabc.EABCConfig):
 PRESETS = {"wpc": WPCConfig()}
 
 
-@flax.struct.dataclass
+@pytree.dataclass
 class WPCState(eabc.EABCState):
     value: networks.Params = None
     value_opt: optax.OptState = None

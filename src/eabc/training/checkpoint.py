@@ -15,9 +15,10 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-import flax.serialization
 import jax
 import numpy as np
+
+from eabc import pytree
 
 CHECKPOINT = "checkpoint.msgpack"
 CONFIG = "config.json"
@@ -47,8 +48,7 @@ def atomic_write(path: Path, data: bytes) -> None:
 
 def save(run_dir: Path, payload: dict[str, Any]) -> None:
     """Save a pytree of arrays and plain values (train state, key, normaliser, history)."""
-    state = flax.serialization.to_state_dict(jax.device_get(payload))
-    data = flax.serialization.msgpack_serialize(state)
+    data = pytree.dumps(pytree.to_state_dict(jax.device_get(payload)))
     atomic_write(Path(run_dir) / CHECKPOINT, data + TRAILER + hashlib.sha256(data).digest())
 
 
@@ -72,7 +72,7 @@ def load_raw(run_dir: Path) -> dict[str, Any]:
         if hashlib.sha256(data).digest() != digest:
             raise CheckpointError(f"{path} is corrupt (its checksum does not match); {_REDO}")
     try:
-        raw = flax.serialization.msgpack_restore(data)
+        raw = pytree.loads(data)
     except Exception as error:  # noqa: BLE001 (msgpack raises many kinds on bad bytes)
         raise CheckpointError(
             f"{path} is corrupt or truncated ({type(error).__name__}); {_REDO}"
@@ -93,10 +93,8 @@ def load(run_dir: Path, template: dict[str, Any], what: str = "this run") -> dic
     """Restore into the structure of ``template``, refusing a checkpoint whose structure, shapes
     or dtypes differ from it (another run's checkpoint: ``what`` names this run's settings)."""
     raw = load_raw(run_dir)
-    check_structure(
-        raw, flax.serialization.to_state_dict(template), Path(run_dir) / CHECKPOINT, what
-    )
-    return flax.serialization.from_state_dict(template, raw)
+    check_structure(raw, pytree.to_state_dict(template), Path(run_dir) / CHECKPOINT, what)
+    return pytree.from_state_dict(template, raw)
 
 
 def check_structure(raw: Any, template: Any, path: Path, what: str, prefix: str = "") -> None:

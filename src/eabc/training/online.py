@@ -22,13 +22,12 @@ import time
 from pathlib import Path
 from typing import Any
 
-import flax.serialization
 import jax
 import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from eabc import networks
+from eabc import networks, pytree
 from eabc.agents import sac
 from eabc.agents.common import Batch
 from eabc.data import tasks
@@ -203,7 +202,7 @@ def _build(run_dir, config, agent_config, from_checkpoint) -> OnlineRun:
         raw = checkpoint.load_raw(run_dir)
         state = {
             **raw,
-            "agent": flax.serialization.from_state_dict(state["agent"], raw["agent"]),
+            "agent": pytree.from_state_dict(state["agent"], raw["agent"]),
             "episodes": np.asarray(raw["episodes"]).reshape(-1, 3).tolist(),
             "evaluations": raw["evaluations"] or {},
         }
