@@ -24,13 +24,12 @@ from __future__ import annotations
 import dataclasses
 from typing import TYPE_CHECKING
 
-import flax.struct
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
 
-from eabc import networks
+from eabc import networks, pytree
 from eabc.agents.common import Batch, apply_gradients
 from eabc.agents.contract import Algorithm
 
@@ -77,7 +76,7 @@ class IQLConfig:
 PRESETS: dict[str, IQLConfig] = {"iql": IQLConfig()}
 
 
-@flax.struct.dataclass
+@pytree.dataclass
 class IQLState:
     actor: networks.Params
     """MLP of the tanh-squashed mean (w/b only, like a deterministic actor)."""
@@ -205,7 +204,7 @@ def update(
     grads, actor_metrics = jax.grad(actor_loss, has_aux=True)(
         actor_params, value, state.critic_target, batch, config, max_action
     )
-    actor, log_std, actor_opt = apply_gradients(actor_tx, grads, state.actor_opt, actor_params)
+    (actor, log_std), actor_opt = apply_gradients(actor_tx, grads, state.actor_opt, actor_params)
 
     grads, critic_metrics = jax.grad(critic_loss, has_aux=True)(state.critic, value, batch, config)
     critic, critic_opt = apply_gradients(critic_tx, grads, state.critic_opt, state.critic)
