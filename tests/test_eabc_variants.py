@@ -173,6 +173,46 @@ def test_auto_p_rises_when_the_policy_is_less_certain_than_the_data(batch):
     np.testing.assert_allclose(same["p"], 0.5, rtol=1e-6)
 
 
+def test_calibrated_auto_p_holds_p_then_targets_the_cloning_spread_ratio(batch):
+    config = tiny(bc_weight="auto", auto_rate=0.01, auto_calibration_steps=4)
+    controller = {**_controller(p=1.0), "ratio_sum": jnp.zeros(()), "ratio_count": jnp.zeros(())}
+    for step, ratio in zip((2, 4), (0.9, 0.7)):  # actor steps inside the calibration: p held
+        controller, m = eabc.adapt_confidence_level(
+            controller, batch, _signals(ratio, 1.0), config, jnp.asarray(step)
+        )
+        np.testing.assert_allclose(controller["p"], 1.0)
+    np.testing.assert_allclose(m["spread_target"], 0.8, rtol=1e-5)  # mean of 0.9 and 0.7
+    # After it: a ratio at the calibrated 0.8 holds p; above it p rises, below it p falls.
+    held, _ = eabc.adapt_confidence_level(
+        {**controller, "p": jnp.asarray(0.5)}, batch, _signals(0.8, 1.0), config, jnp.asarray(6)
+    )
+    np.testing.assert_allclose(held["p"], 0.5, rtol=1e-5)
+    np.testing.assert_allclose(held["ratio_count"], 2.0)  # the calibration no longer moves
+    fall, m = eabc.adapt_confidence_level(controller, batch, _signals(0.4, 1.0), config, 6)
+    np.testing.assert_allclose(fall["p"], 1.0 - 0.01 * np.log(2.0), rtol=1e-5)
+    np.testing.assert_allclose(m["spread_target"], 0.8, rtol=1e-5)
+    # auto_spread_ratio scales the calibrated target.
+    scaled = dataclasses.replace(config, auto_spread_ratio=0.5)
+    same, _ = eabc.adapt_confidence_level(
+        {**controller, "p": jnp.asarray(0.5)}, batch, _signals(0.4, 1.0), scaled, 6
+    )
+    np.testing.assert_allclose(same["p"], 0.5, rtol=1e-5)
+
+
+def test_calibrated_auto_p_in_a_training_step_starts_and_stays_at_one_while_calibrating(batch):
+    config = tiny(bc_weight="auto", auto_calibration_steps=4)
+    state = eabc.init(jax.random.PRNGKey(0), 3, 2, config)
+    assert set(state.controller) >= {"ratio_sum", "ratio_count"}
+    for i in range(6):
+        state, metrics = eabc.update(state, batch, jax.random.PRNGKey(i), config, 1.0)
+        if i < 4:
+            assert float(state.controller["p"]) == 1.0
+    assert float(state.controller["ratio_count"]) == 2.0  # actor steps 2 and 4
+    assert float(state.controller["p"]) != 1.0 or float(metrics["spread_ratio"]) >= float(
+        metrics["spread_target"]
+    )
+
+
 def test_auto_p_stays_within_its_bounds(batch):
     config = tiny(bc_weight="auto", auto_rate=0.3, auto_min_p=0.2)
     controller = _controller(p=0.5)
@@ -252,6 +292,8 @@ def test_invalid_variant_settings_are_refused():
         eabc.EABCConfig(auto_min_p=0.8, auto_initial_p=0.5)
     with pytest.raises(ValueError, match="pessimism_beta"):
         eabc.EABCConfig(pessimism_beta=-1.0)
+    with pytest.raises(ValueError, match="auto_calibration_steps"):
+        eabc.EABCConfig(auto_calibration_steps=-5)
 
 
 def test_eabc_auto_learns(tmp_path, pendulum_dataset):

@@ -66,6 +66,7 @@ SCREEN_VARIANTS = [  # in order of priority: a screen stopped early has run the 
     {"algo": "eabc", "independent_targets": True, "pessimism_beta": 2.0},
     {"algo": "eabc-auto", "critic_layer_norm": True, "independent_targets": True},
     {"algo": "eabc", "pessimism_beta": 2.0},
+    {"algo": "eabc-robust"},  # auto p with a calibrated target, on LayerNorm critics
 ]
 
 
