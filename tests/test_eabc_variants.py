@@ -140,6 +140,61 @@ def test_quantile_rule_masks_the_actor_step_with_the_pre_update_critics(batch):
     np.testing.assert_allclose(metrics["bc_fraction"], keep.mean())
 
 
+def _pessimistic(critic, obs, act, k=4, beta=1.0):
+    q = np.stack([np_mlp(member(critic, i), np.concatenate([obs, act], -1))[:, 0] for i in range(k)])
+    return q.mean(0) - beta * q.std(0, ddof=1)
+
+
+@pytest.mark.parametrize("beta", [0.0, 1.0, 2.0])
+def test_advantage_rule_matches_hand_computation(batch, beta):
+    config = tiny(bc_weight="advantage", pessimism_beta=beta)
+    state = eabc.init(jax.random.PRNGKey(4), OBS, ACT, config)
+    loss, metrics = eabc.actor_loss(
+        state.actor, state.critic, batch, jax.random.PRNGKey(0), config, 1.0
+    )
+    s, a = (np.asarray(x, np.float64) for x in (batch.observations, batch.actions))
+    pi = np.tanh(np_mlp(state.actor, s))
+    policy_value = _pessimistic(state.critic, s, pi, beta=beta)
+    keep = (_pessimistic(state.critic, s, a, beta=beta) >= policy_value).astype(np.float64)
+    assert 0 < keep.sum() < len(keep)  # this batch has both cases, so the mask is tested
+    bc = (keep * ((pi - a) ** 2).mean(-1)).mean()
+    expected = -2.5 / np.abs(policy_value).mean() * policy_value.mean() + bc
+    np.testing.assert_allclose(metrics["bc_fraction"], keep.mean(), rtol=1e-6)
+    np.testing.assert_allclose(metrics["bc_loss"], bc, rtol=1e-4)
+    np.testing.assert_allclose(loss, expected, rtol=1e-4)
+
+
+def test_advantage_rule_clones_where_the_policy_takes_the_data_action(batch):
+    """At the data's own actions the two values are equal, so every sample is cloned (also for
+    min2, whose random pair is the same for both values)."""
+    for pessimism in ("mean-std", "min2"):
+        config = tiny(bc_weight="advantage", pessimism=pessimism)
+        state = eabc.init(jax.random.PRNGKey(4), OBS, ACT, config)
+        actions = networks.actor_apply(state.actor, batch.observations, 1.0)
+        on_policy = batch.replace(actions=actions)
+        keep = eabc.advantage_keep(
+            state.critic,
+            on_policy,
+            eabc.pessimistic_value(
+                networks.critic_apply(state.critic, batch.observations, actions),
+                pessimism,
+                jax.random.PRNGKey(1),
+            ),
+            jax.random.PRNGKey(1),
+            config,
+        )
+        assert np.asarray(keep).all(), pessimism
+
+
+def test_advantage_rule_needs_no_confidence_level(batch):
+    config = trainer.resolve_agent_config("eabc", "hopper-medium", {"bc_weight": "advantage"})
+    assert config.confidence_level is None  # nothing to look up, nothing to tune
+    state = eabc.init(jax.random.PRNGKey(0), OBS, ACT, config)
+    state = state.replace(step=jnp.ones((), jnp.int32))  # the next step updates the actor
+    _, metrics = eabc.update(state, batch, jax.random.PRNGKey(0), config, 1.0)
+    assert 0.0 <= float(metrics["bc_fraction"]) <= 1.0
+
+
 def _controller(p=0.5, rewards=(0.0, 1.0)):
     return {
         "p": jnp.asarray(p),

@@ -37,6 +37,30 @@ def test_variants_expand_breadth_first_beside_the_grid():
     assert variant.train_config().steps == 1000
 
 
+def test_a_variant_can_name_its_own_datasets_to_set_the_priority_order():
+    spec = {
+        "datasets": ["hopper-medium", "walker2d-medium"],
+        "variants": [
+            {"algo": "eabc", "critic_layer_norm": True, "datasets": ["hopper-medium"]},
+            {"algo": "td3bc"},
+            {"algo": "eabc", "critic_layer_norm": True, "datasets": ["walker2d-medium"]},
+            {"algo": "td3bc", "datasets": ["hopper-random"]},
+            {"algo": "td3bc", "datasets": ["hopper-medium"]},  # already listed: not run twice
+        ],
+        "seeds": [0],
+    }
+    ids = [r.run_id for r in sweep.expand(spec)]
+    assert ids == [
+        "hopper-medium__eabc__critic_layer_normTrue__seed0",
+        "hopper-medium__td3bc__seed0",
+        "walker2d-medium__td3bc__seed0",
+        "walker2d-medium__eabc__critic_layer_normTrue__seed0",
+        "hopper-random__td3bc__seed0",
+    ]
+    with pytest.raises(ValueError, match="non-empty list"):
+        sweep.expand({**spec, "variants": [{"algo": "td3bc", "datasets": "hopper-medium"}]})
+
+
 def test_bad_variants_are_refused_with_the_settings_named():
     base = {"datasets": ["hopper-medium"], "seeds": [0]}
     with pytest.raises(ValueError, match="has no setting"):

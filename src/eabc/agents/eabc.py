@@ -24,7 +24,11 @@ variants of issue 14, each a switch of this one rule:
   ``w ~ Bernoulli(p)``. ``quantile`` is the authors' earlier rule (SPEC section 5): ``w = 1`` where
   the q-quantile of the K values ``Q_k(s, a)`` exceeds ``m + s / sqrt(K)``. ``auto`` adapts p
   during training (see :func:`adapt_confidence_level`): ``w ~ Bernoulli(p_t)`` with ``p_t`` moved
-  by offline signals only, never by evaluation returns.
+  by offline signals only, never by evaluation returns. ``advantage`` has no p at all: ``w = 1``
+  where the ensemble rates the data's action at least as high as the policy's,
+  ``pess(Q(s, a)) >= pess(Q(s, pi(s)))`` (CRR's binary advantage filter, Wang et al. 2020, with
+  the actor's own pessimistic value): the policy is pulled toward the data only where the data does
+  better, and left to the critics where they say it does better already.
 """
 
 from __future__ import annotations
@@ -43,7 +47,7 @@ from eabc.agents.contract import Algorithm
 from eabc.data import tasks
 
 Pessimism = Literal["mean-std", "min", "min2"]
-BCWeight = Literal["bernoulli", "quantile", "auto"]
+BCWeight = Literal["bernoulli", "quantile", "auto", "advantage"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -88,7 +92,8 @@ class EABCConfig:
     pess(...) target; pessimism then acts through the actor's value only."""
     bc_weight: BCWeight = "bernoulli"
     """Per-sample BC weight: bernoulli (w ~ Bernoulli(p), the paper), quantile (the authors'
-    earlier ensemble rule, SPEC section 5) or auto (Bernoulli(p_t), p_t adapted; see below)."""
+    earlier ensemble rule, SPEC section 5), auto (Bernoulli(p_t), p_t adapted; see below) or
+    advantage (w = 1 where pess Q(s, a) >= pess Q(s, pi(s)); no p)."""
     quantile_level: float | None = None
     """q of the quantile rule; None: SPEC section 5's table for the dataset."""
     auto_initial_p: float = 1.0
@@ -119,9 +124,9 @@ class EABCConfig:
             raise ValueError(f"pessimism must be mean-std, min or min2, got {self.pessimism!r}")
         if self.policy_freq < 1:
             raise ValueError(f"policy_freq must be at least 1, got {self.policy_freq}")
-        if self.bc_weight not in ("bernoulli", "quantile", "auto"):
+        if self.bc_weight not in ("bernoulli", "quantile", "auto", "advantage"):
             raise ValueError(
-                f"bc_weight must be bernoulli, quantile or auto, got {self.bc_weight!r}"
+                f"bc_weight must be bernoulli, quantile, auto or advantage, got {self.bc_weight!r}"
             )
         if self.pessimism_beta < 0:
             raise ValueError(f"pessimism_beta must be >= 0, got {self.pessimism_beta}")
@@ -257,7 +262,8 @@ def critic_loss(critic, critic_target, actor_target, batch: Batch, key, config, 
 
 def actor_loss(actor, critic, batch: Batch, key, config, max_action, keep=None, p=None):
     """The actor loss; ``keep`` (per sample, in [0, 1]) replaces the Bernoulli BC mask if given,
-    and ``p`` (a traced scalar: bc_weight auto's current p) replaces ``config.confidence_level``."""
+    and ``p`` (a traced scalar: bc_weight auto's current p) replaces ``config.confidence_level``.
+    With bc_weight advantage the mask is ``pess Q(s, a) >= pess Q(s, pi(s))``, no gradient."""
     pess_key, mask_key = jax.random.split(key)
     pi = networks.actor_apply(actor, batch.observations, max_action)
     q = networks.critic_apply(critic, batch.observations, pi)
@@ -269,6 +275,8 @@ def actor_loss(actor, critic, batch: Batch, key, config, max_action, keep=None, 
         loss = -value.mean()
         return loss, {"actor_loss": loss, "actor_value": value.mean()}
     lam = jax.lax.stop_gradient(config.alpha / jnp.abs(value).mean())
+    if keep is None and config.bc_weight == "advantage":
+        keep = advantage_keep(critic, batch, value, pess_key, config)
     if keep is None:
         p = config.confidence_level if p is None else p
         if p is None:
@@ -301,6 +309,19 @@ def quantile_keep(critic, batch: Batch, config: EABCConfig) -> jax.Array:
     upper = jnp.quantile(q, config.quantile_level, axis=0)  # linear, as torch.quantile
     k = q.shape[0]
     return (upper > q.mean(axis=0) + q.std(axis=0, ddof=1) / jnp.sqrt(k)).astype(q.dtype)
+
+
+def advantage_keep(critic, batch: Batch, policy_value, key, config: EABCConfig) -> jax.Array:
+    """bc_weight advantage's mask: 1 where the data's action is valued at least as high as the
+    policy's, both by the actor's own value (``pess`` of the ensemble, or critic 1 for
+    actor_uses_ensemble False; min2 draws the same pair for both)."""
+    q = networks.critic_apply(critic, batch.observations, batch.actions)
+    if config.actor_uses_ensemble:
+        data_value = pessimistic_value(q, config.pessimism, key, config.pessimism_beta)
+    else:
+        data_value = q[0]
+    better = data_value >= policy_value
+    return jax.lax.stop_gradient(better.astype(policy_value.dtype))
 
 
 def adapt_confidence_level(controller, batch: Batch, metrics, config: EABCConfig, step=None):

@@ -10,7 +10,9 @@ A sweep specification (YAML, or the same keys from the command line or a preset)
     train: {eval_interval: 5000, eval_episodes: 10}  # any other TrainConfig field
 
 and expands to the product datasets x algos x grid x seeds (grid settings apply only to the
-algorithms that have them). Runs live in ``ROOT/runs/RUN_ID``; a sweep started again skips the
+algorithms that have them). ``variants:`` lists named combinations instead of (or beside) a grid,
+``{algo: eabc, critic_layer_norm: true}``, run breadth first in the order given; a variant's own
+``datasets: [...]`` replaces the spec's for it, so one spec can put runs in any priority order. Runs live in ``ROOT/runs/RUN_ID``; a sweep started again skips the
 finished runs and resumes the interrupted ones from their checkpoints.
 
 Seeds of one setting form a *group*. A group runs either as one process that trains its seeds
@@ -62,6 +64,8 @@ SCREEN_VARIANTS = [  # in order of priority: a screen stopped early has run the 
     # p was still near 1 (94 at 10K steps, 79 at 20K) and lost it as p fell.
     {"algo": "eabc", "confidence_level": 1.0, "critic_layer_norm": True},
     {"algo": "eabc-robust"},  # auto p with a calibrated target, on LayerNorm critics
+    # No p: clone where the ensemble rates the data's action at least as high as the policy's.
+    {"algo": "eabc", "bc_weight": "advantage", "critic_layer_norm": True},
     {"algo": "eabc", "confidence_level": 1.0},
     {"algo": "eabc", "critic_layer_norm": True},
     {"algo": "eabc-auto", "critic_layer_norm": True},
@@ -252,7 +256,8 @@ def expand(spec: dict[str, Any]) -> list[RunSpec]:
         raise ValueError("the sweep needs at least one entry in 'datasets'")
     if not spec.get("algos") and not spec.get("variants"):
         raise ValueError("the sweep needs at least one entry in 'algos' or 'variants'")
-    variants = [_variant(v) for v in spec.get("variants") or []]
+    datasets = [_dataset(d) for d in spec["datasets"]]
+    variants = [_variant(v, datasets) for v in spec.get("variants") or []]
     seeds = [int(s) for s in spec.get("seeds", [0])]
     train = dict(spec.get("train") or {})
     if "steps" in spec:
@@ -274,7 +279,6 @@ def expand(spec: dict[str, Any]) -> list[RunSpec]:
         for k, v in (spec.get("grid") or {}).items()
     }
     runs = []
-    datasets = [str(Path(d).expanduser().resolve()) if is_path(d) else d for d in spec["datasets"]]
     algos = spec.get("algos") or []
     for dataset in datasets:
         for algo in algos:
@@ -287,29 +291,43 @@ def expand(spec: dict[str, Any]) -> list[RunSpec]:
                     runs.append(RunSpec(dataset, algo, seed, overrides, _frozen(train)))
     # Named combinations, beside the grid's product; breadth first (seed, then variant, then
     # dataset), so that a sweep stopped early has compared every variant on every dataset.
-    for seed, (algo, overrides), dataset in itertools.product(seeds, variants, datasets):
-        runs.append(RunSpec(dataset, algo, seed, overrides, _frozen(train)))
+    for seed, (algo, overrides, only) in itertools.product(seeds, variants):
+        for dataset in only:
+            runs.append(RunSpec(dataset, algo, seed, overrides, _frozen(train)))
     unused = set(grid) - {k for a in algos for k in _fields(a)}
     if grid and unused:
         raise ValueError(f"no algorithm of the sweep has the setting(s) {sorted(unused)}")
-    return runs
+    unique: dict[str, RunSpec] = {}
+    for run in runs:  # a run listed twice keeps its first place
+        unique.setdefault(run.run_id, run)
+    return list(unique.values())
 
 
-def _variant(entry) -> tuple[str, tuple[tuple[str, Any], ...]]:
+def _dataset(name: str) -> str:
+    return str(Path(name).expanduser().resolve()) if is_path(name) else name
+
+
+def _variant(entry, datasets: list[str]) -> tuple[str, tuple[tuple[str, Any], ...], list[str]]:
     """A ``variants:`` entry, ``{algo: eabc, critic_layer_norm: true, ...}``: one algorithm with
-    fixed settings (checked against the algorithm's own)."""
+    fixed settings (checked against the algorithm's own), and the datasets it runs on (its own
+    ``datasets:`` list, else the spec's)."""
     if isinstance(entry, str):
         entry = {"algo": entry}
     if not isinstance(entry, dict) or "algo" not in entry:
         raise ValueError(f"a sweep variant is a mapping with an 'algo' key, got {entry!r}")
-    settings = {k: v for k, v in entry.items() if k != "algo"}
+    settings = {k: v for k, v in entry.items() if k not in ("algo", "datasets")}
+    only = entry.get("datasets", datasets)
+    if isinstance(only, str) or not only or not all(isinstance(d, str) for d in only):
+        raise ValueError(
+            f"variant {entry!r}: 'datasets' must be a non-empty list of dataset names, got {only!r}"
+        )
     unknown = set(settings) - _fields(entry["algo"])
     if unknown:
         raise ValueError(
             f"variant {entry!r}: {entry['algo']} has no setting(s) {sorted(unknown)}; it has "
             f"{sorted(_fields(entry['algo']))}"
         )
-    return entry["algo"], _frozen(settings)
+    return entry["algo"], _frozen(settings), [_dataset(d) for d in only]
 
 
 def _fields(algo: str) -> set[str]:
