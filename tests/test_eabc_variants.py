@@ -141,7 +141,9 @@ def test_quantile_rule_masks_the_actor_step_with_the_pre_update_critics(batch):
 
 
 def _pessimistic(critic, obs, act, k=4, beta=1.0):
-    q = np.stack([np_mlp(member(critic, i), np.concatenate([obs, act], -1))[:, 0] for i in range(k)])
+    q = np.stack(
+        [np_mlp(member(critic, i), np.concatenate([obs, act], -1))[:, 0] for i in range(k)]
+    )
     return q.mean(0) - beta * q.std(0, ddof=1)
 
 

@@ -19,6 +19,8 @@ import yaml
 
 from eabc.data.loaders import save_npz
 from eabc.experiments import results, sweep
+from eabc.experiments.presets import PRESETS
+from eabc.experiments.spec import expand, groups
 from eabc.training import trainer
 from eabc.training.trainer import TrainConfig
 
@@ -57,7 +59,7 @@ def test_seed_vmapped_training_equals_training_the_seeds_one_by_one(tmp_path, pe
 
 
 def test_sweep_expansion_ids_and_validation():
-    runs = sweep.expand(
+    runs = expand(
         {
             "datasets": ["hopper-medium", "walker2d-random"],
             "algos": ["eabc", "bc"],
@@ -72,18 +74,16 @@ def test_sweep_expansion_ids_and_validation():
     assert len(set(ids)) == 12 and "hopper-medium__eabc__K5__seed1" in ids
     assert {r.variant for r in runs if r.algo == "eabc"} == {"K=5", "K=10"}
     assert all(r.train_config().steps == 1000 for r in runs)
-    assert len(sweep.groups(runs)) == 6
+    assert len(groups(runs)) == 6
     with pytest.raises(ValueError, match="no algorithm of the sweep has"):
-        sweep.expand(
-            {"datasets": ["hopper-medium"], "algos": ["bc"], "grid": {"pessimism": ["min"]}}
-        )
+        expand({"datasets": ["hopper-medium"], "algos": ["bc"], "grid": {"pessimism": ["min"]}})
     with pytest.raises(ValueError, match="unknown sweep key"):
-        sweep.expand({"datasets": ["x"], "algos": ["bc"], "seedz": [1]})
-    for name, preset in sweep.PRESETS.items():
+        expand({"datasets": ["x"], "algos": ["bc"], "seedz": [1]})
+    for name, preset in PRESETS.items():
         if not name.startswith("study"):  # the paper's grids: 15 datasets x 5 seeds at least
-            assert len(sweep.expand(preset)) >= 15 * 5, name
+            assert len(expand(preset)) >= 15 * 5, name
         else:  # issue 14's study (tests/test_study.py): 5 or 1 datasets, 2-3 seeds
-            assert len(sweep.expand(preset)) >= 3 * 3, name
+            assert len(expand(preset)) >= 3 * 3, name
 
 
 @pytest.fixture
@@ -105,7 +105,7 @@ def two_datasets(tmp_path, pendulum_dataset):
 def test_local_sweep_is_interrupted_resumed_and_stored(tmp_path, two_datasets):
     root = tmp_path / "sweep"
     spec = _spec(two_datasets, steps=400)
-    runs = sweep.expand(spec)
+    runs = expand(spec)
     assert len(runs) == 8
     root.mkdir()
     (root / "spec.yaml").write_text(yaml.safe_dump(spec))
@@ -189,7 +189,7 @@ def test_ray_backend_runs_a_sweep_on_a_local_ray_instance(tmp_path, two_datasets
     monkeypatch.chdir(tmp_path / "driver")
     root = Path("ray-sweep")
     spec = _spec([os.path.relpath(d) for d in two_datasets], steps=200)
-    runs = sweep.expand(spec)
+    runs = expand(spec)
     try:
         sweep.run_ray(sweep.jobs(runs, root, "vmap"), root)
     finally:

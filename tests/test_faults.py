@@ -24,6 +24,7 @@ from eabc.data.dataset import Dataset, DatasetError
 from eabc.data.loaders import save_npz
 from eabc.data.sources import load_dataset
 from eabc.experiments import results, sweep
+from eabc.experiments.spec import expand
 from eabc.training import checkpoint, logger, trainer
 from eabc.training.checkpoint import CheckpointError
 from eabc.training.lock import OWNER, RunLockedError
@@ -272,20 +273,20 @@ def test_sweep_identity_paths_changed_specs_and_broken_files(tmp_path, pendulum_
         "grid": {"hidden_dims": [[32, 32]]},
         "train": {k: v for k, v in SMALL.items() if k not in ("dataset", "steps")},
     }
-    runs = sweep.expand(spec)
+    runs = expand(spec)
     assert len({r.run_id for r in runs}) == 2
     root = tmp_path / "sweep"
     for run in runs:
         sweep.execute([run.to_json()], str(root))
     assert [sweep.status(r, root)[0] for r in runs] == ["done", "done"]
 
-    longer = sweep.expand({**spec, "steps": 400})  # more steps extend the runs
+    longer = expand({**spec, "steps": 400})  # more steps extend the runs
     assert [sweep.status(r, root) for r in longer] == [("partial", 200)] * 2
     sweep.execute([longer[0].to_json()], str(root))
     assert sweep.status(longer[0], root) == ("done", 400)
     assert sweep.status(runs[0], root)[0] == "changed"  # fewer steps than trained: refused
 
-    other = sweep.expand({**spec, "train": {**spec["train"], "eval_interval": 100}})
+    other = expand({**spec, "train": {**spec["train"], "eval_interval": 100}})
     assert sweep.status(other[1], root)[0] == "changed"
     with pytest.raises(ValueError, match="eval_interval 200 -> 100"):
         sweep.execute([other[1].to_json()], str(root))
@@ -310,7 +311,7 @@ def test_killed_sweep_leaves_no_worker_and_its_restart_matches(tmp_path, pendulu
                   "checkpoint_interval": 100},
     }  # fmt: skip
     (tmp_path / "spec.yaml").write_text(json.dumps(spec))
-    (run,) = sweep.expand(spec)
+    (run,) = expand(spec)
     root = tmp_path / "sweep"
     cli = [
         sys.executable,

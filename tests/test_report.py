@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 from scipy import stats
 
-from eabc.experiments import figures, report
+from eabc.experiments import figures, report, tables
 from eabc.experiments import stats as aggregate
 
 DATASETS = ("walker2d-medium", "hopper-random")  # out of table order on purpose
@@ -86,10 +86,10 @@ def written(results, tmp_path_factory):
 
 def test_score_table_cells_equal_the_groupby_of_the_input(results):
     runs, _ = results
-    table = report.score_table(runs)
+    table = tables.score_table(runs)
     expected = grouped(runs)
     assert list(table.index) == ["hopper-random", "walker2d-medium", "Average"]
-    assert report._columns(table) == ["td3bc", "iql", "eabc", "eabc K=5"]
+    assert tables._columns(table) == ["td3bc", "iql", "eabc", "eabc K=5"]
     means = table.xs("mean", axis=1, level="stat")
     stds = table.xs("std", axis=1, level="stat")
     count = table.xs("runs", axis=1, level="stat")
@@ -104,7 +104,7 @@ def test_average_row_is_over_the_datasets_where_a_column_has_values(results):
     extra = runs[(runs["algo"] == "iql") & (runs["dataset"] == "hopper-random")].copy()
     extra["algo"], extra["run_id"] = "cql", extra["run_id"] + "_cql"
     extra["final_score"] = [10.0, 20.0, 60.0]
-    table = report.score_table(pd.concat([runs, extra]))
+    table = tables.score_table(pd.concat([runs, extra]))
     means = table.xs("mean", axis=1, level="stat")
     stds = table.xs("std", axis=1, level="stat")
     expected = grouped(runs)
@@ -115,7 +115,7 @@ def test_average_row_is_over_the_datasets_where_a_column_has_values(results):
     assert np.isnan(means.at["walker2d-medium", "cql"])
     assert means.at["Average", "cql"] == pytest.approx(30.0)
     assert stds.at["Average", "cql"] == pytest.approx(np.std([10.0, 20.0, 60.0], ddof=1))
-    assert "–" in report.to_markdown(table)  # the missing cell
+    assert "–" in tables.to_markdown(table)  # the missing cell
 
 
 def test_datasets_are_ordered_by_environment_then_kind():
@@ -129,7 +129,7 @@ def test_datasets_are_ordered_by_environment_then_kind():
         "hopper-medium",
         "hopper-random",
     ]
-    assert sorted(names, key=report.dataset_sort_key) == [
+    assert sorted(names, key=tables.dataset_sort_key) == [
         "hopper-random",
         "hopper-medium",
         "hopper-medium-replay",
@@ -162,16 +162,16 @@ def test_the_best_mean_of_each_row_is_bold_in_every_format(results):
     runs, _ = results
     runs = runs.copy()  # make the row winners differ: td3bc best on hopper-random
     runs.loc[(runs["dataset"] == "hopper-random") & (runs["algo"] == "td3bc"), "final_score"] += 40
-    table = report.score_table(runs)
+    table = tables.score_table(runs)
     best = best_columns(runs)
     assert best["hopper-random"] != best["walker2d-medium"]
 
-    md = markdown_rows(report.to_markdown(table))
+    md = markdown_rows(tables.to_markdown(table))
     html = {
         re.search(r"<th>(.*?)</th>", row)[1]: re.findall(r"<td>(.*?)</td>", row)
-        for row in re.findall(r"<tr><th>.*?</tr>", report.to_html(table))
+        for row in re.findall(r"<tr><th>.*?</tr>", tables.to_html(table))
     }
-    tex_lines = [ln for ln in report.to_latex(table).splitlines() if ln.endswith("\\\\")]
+    tex_lines = [ln for ln in tables.to_latex(table).splitlines() if ln.endswith("\\\\")]
     tex = {cells[0]: cells[1:] for cells in (ln[:-2].strip().split(" & ") for ln in tex_lines)}
     for rendered, bold in (
         (md, r"^\*\*.*\*\*$"),
@@ -190,7 +190,7 @@ def test_the_best_mean_of_each_row_is_bold_in_every_format(results):
 
 def test_aggregate_table_matches_the_statistics_and_the_unbatched_bootstrap(results):
     runs, _ = results
-    table = report.aggregate_table(runs, reps=300, seed=3)
+    table = tables.aggregate_table(runs, reps=300, seed=3)
     assert list(table.index) == ["td3bc", "iql", "eabc", "eabc K=5"]
     eabc = runs[(runs["algo"] == "eabc") & (runs["variant"] == "")]
     per_task = [g["final_score"].to_numpy() for _, g in eabc.groupby("dataset")]
@@ -228,7 +228,7 @@ def test_ablation_holds_the_other_settings_fixed(results):
 
 def test_runtime_table_is_time_per_million_steps(results):
     runs, _ = results
-    table = report.runtime_table(runs)
+    table = tables.runtime_table(runs)
     hours = (1e6 / runs["steps_per_s"] / 3600).groupby(labelled(runs)).agg(["mean", "std"])
     for label in LEVELS:
         assert table.at[label, "mean"] == pytest.approx(hours.at[label, "mean"])
@@ -279,7 +279,7 @@ def test_write_report_writes_every_file_and_the_table_matches_the_input(results,
 def test_bad_input_gives_clear_errors(results):
     runs, evaluations = results
     with pytest.raises(ValueError, match="final_score"):
-        report.score_table(runs.drop(columns="final_score"))
+        tables.score_table(runs.drop(columns="final_score"))
     with pytest.raises(ValueError, match="unknown ablation parameter"):
         figures.plot_ablation(runs, evaluations, "alpha", "unused.png")
     with pytest.raises(ValueError, match="no runs of 'cql'"):
@@ -362,5 +362,5 @@ def test_a_runs_speed_is_the_median_of_its_training_chunks(tmp_path):
     (run / "log.csv").write_text("step,wall_time,steps_per_s\n" + "\n".join(rows) + "\n")
     row, _ = store.read_run(run)
     assert row["steps_per_s"] == 280.0
-    table = report.runtime_table(pd.DataFrame([row]))
+    table = tables.runtime_table(pd.DataFrame([row]))
     assert table.at["td3bc", "mean"] == pytest.approx(1e6 / 280.0 / 3600)

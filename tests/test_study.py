@@ -5,7 +5,8 @@ from __future__ import annotations
 import pytest
 
 from eabc import cli
-from eabc.experiments import sweep
+from eabc.experiments.presets import PRESETS
+from eabc.experiments.spec import expand
 
 
 def test_variants_expand_breadth_first_beside_the_grid():
@@ -16,7 +17,7 @@ def test_variants_expand_breadth_first_beside_the_grid():
         "seeds": [0, 1],
         "steps": 1000,
     }
-    runs = sweep.expand(spec)
+    runs = expand(spec)
     ids = [r.run_id for r in runs]
     assert ids[:4] == [  # the algos part keeps its order: dataset, algo, seed
         "hopper-medium__td3bc__seed0",
@@ -49,7 +50,7 @@ def test_a_variant_can_name_its_own_datasets_to_set_the_priority_order():
         ],
         "seeds": [0],
     }
-    ids = [r.run_id for r in sweep.expand(spec)]
+    ids = [r.run_id for r in expand(spec)]
     assert ids == [
         "hopper-medium__eabc__critic_layer_normTrue__seed0",
         "hopper-medium__td3bc__seed0",
@@ -58,25 +59,25 @@ def test_a_variant_can_name_its_own_datasets_to_set_the_priority_order():
         "hopper-random__td3bc__seed0",
     ]
     with pytest.raises(ValueError, match="non-empty list"):
-        sweep.expand({**spec, "variants": [{"algo": "td3bc", "datasets": "hopper-medium"}]})
+        expand({**spec, "variants": [{"algo": "td3bc", "datasets": "hopper-medium"}]})
 
 
 def test_bad_variants_are_refused_with_the_settings_named():
     base = {"datasets": ["hopper-medium"], "seeds": [0]}
     with pytest.raises(ValueError, match="has no setting"):
-        sweep.expand({**base, "variants": [{"algo": "td3bc", "layer_norm": True}]})
+        expand({**base, "variants": [{"algo": "td3bc", "layer_norm": True}]})
     with pytest.raises(ValueError, match="'algo' key"):
-        sweep.expand({**base, "variants": [{"critic_layer_norm": True}]})
+        expand({**base, "variants": [{"critic_layer_norm": True}]})
     with pytest.raises(ValueError, match="unknown algorithm"):
-        sweep.expand({**base, "variants": ["eabc-nope"]})
+        expand({**base, "variants": ["eabc-nope"]})
     with pytest.raises(ValueError, match="'algos' or 'variants'"):
-        sweep.expand(base)
+        expand(base)
 
 
 def test_study_presets_follow_the_issue_protocol():
-    assert set(cli.SWEEP_PRESETS) == set(sweep.PRESETS)
-    screen = sweep.PRESETS["study-screen"]
-    runs = sweep.expand(screen)
+    assert set(cli.SWEEP_PRESETS) == set(PRESETS)
+    screen = PRESETS["study-screen"]
+    runs = expand(screen)
     datasets = {
         "hopper-medium",
         "hopper-medium-replay",
@@ -91,7 +92,7 @@ def test_study_presets_follow_the_issue_protocol():
     # Published EABC (Table 3's p) and TD3+BC are in every screen, first.
     assert [r.algo for r in runs[:10]] == ["td3bc"] * 5 + ["eabc"] * 5
     assert all(r.overrides == () for r in runs[:10])
-    confirm = sweep.expand(sweep.PRESETS["study"])
+    confirm = expand(PRESETS["study"])
     config = confirm[0].train_config()
     assert (config.steps, {r.seed for r in confirm}) == (100_000, {0, 1, 2})
     labels = {(r.algo, r.overrides) for r in confirm}
@@ -101,7 +102,7 @@ def test_study_presets_follow_the_issue_protocol():
         ("eabc", (("confidence_level", 1.0),)),
         ("eabc-robust", ()),
     }
-    long = sweep.expand(sweep.PRESETS["study-1m"])
+    long = expand(PRESETS["study-1m"])
     assert {r.dataset for r in long} == {"halfcheetah-medium"}
     assert long[0].train_config().steps == 1_000_000
 
@@ -111,7 +112,7 @@ def test_stability_table_says_where_the_critics_fail():
 
     import pandas as pd
 
-    from eabc.experiments import report
+    from eabc.experiments import tables
 
     nan = math.nan
     runs = pd.DataFrame(
@@ -130,7 +131,7 @@ def test_stability_table_says_where_the_critics_fail():
             "bc_fraction_last": [0.25, 0.25, 1.0, 0.5],
         }
     )
-    table = report.stability_table(runs)
+    table = tables.stability_table(runs)
     assert list(table["label"]) == ["td3bc", "eabc", "eabc critic_layer_norm=True"]
     eabc = table[table["label"] == "eabc"].iloc[0]
     assert eabc["runs"] == 2 and eabc["out_of_range"] == 2
@@ -139,7 +140,7 @@ def test_stability_table_says_where_the_critics_fail():
     assert math.isclose(eabc["policy_spread"], (0.01 + 0.02) / 2)
     assert math.isclose(eabc["spread_ratio"], (2.0 + 4.0) / 2)  # the policy off the data's support
     assert math.isclose(eabc["score"], 7.0) and math.isclose(eabc["score_std"], 2**0.5 * 2)
-    text = report.stability_to_markdown(table)
+    text = tables.stability_to_markdown(table)
     assert (
         "| hopper-medium | EABC | 2 | 7.0 ± 2.8 | 2/2 | 11,000 | 3,000 | 1.50% | 3.00 | 0.25 |"
         in text

@@ -16,7 +16,7 @@ from typing import Annotated, Literal
 import tyro
 
 from eabc import __version__, compile_cache
-from eabc.experiments.sweep import PRESETS as _SWEEP_PRESETS
+from eabc.experiments.presets import PRESETS as _SWEEP_PRESETS
 from eabc.training.online import SACTrainConfig
 from eabc.training.trainer import TrainConfig
 
@@ -50,7 +50,7 @@ TrainOptions = _parsed_unchecked(TrainConfig)
 SACTrainOptions = _parsed_unchecked(SACTrainConfig)
 
 SWEEP_PRESETS = tuple(_SWEEP_PRESETS)
-"""The names of ``eabc.experiments.sweep.PRESETS``, the choices of ``eabc sweep --preset``."""
+"""The names of ``eabc.experiments.presets.PRESETS``, the choices of ``eabc sweep --preset``."""
 
 
 def _agent_overrides() -> type:
@@ -298,13 +298,14 @@ class ExportPolicy:
 
 
 def sweep_spec(cmd: Sweep) -> dict:
-    from eabc.experiments import sweep  # noqa: PLC0415
+    from eabc.experiments.presets import PRESETS  # noqa: PLC0415
+    from eabc.experiments.spec import load_spec  # noqa: PLC0415
 
     spec: dict = {}
     if cmd.preset:
-        spec = {**sweep.PRESETS[cmd.preset]}
+        spec = {**PRESETS[cmd.preset]}
     if cmd.spec:
-        spec = {**spec, **sweep.load_spec(cmd.spec)}
+        spec = {**spec, **load_spec(cmd.spec)}
     for key in ("datasets", "algos", "seeds"):
         if getattr(cmd, key):
             spec[key] = list(getattr(cmd, key))
@@ -349,9 +350,10 @@ def run_sweep(cmd: Sweep) -> None:
     import yaml  # noqa: PLC0415
 
     from eabc.experiments import results, sweep  # noqa: PLC0415
+    from eabc.experiments.spec import expand  # noqa: PLC0415
 
     root = Path(cmd.root)
-    runs = sweep.expand(sweep_spec(cmd))
+    runs = expand(sweep_spec(cmd))
     rows = sweep.plan(runs, root)
     left = [r for r in rows if r["status"] != "done"]
     hours = sum(r["seconds"] for r in left) / 3600

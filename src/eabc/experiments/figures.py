@@ -16,18 +16,17 @@ import numpy as np
 import pandas as pd
 
 from eabc.agents import ALGORITHMS, get_algorithm
-from eabc.experiments.report import (
+from eabc.experiments.labels import (
     ABLATION_PARAMETERS,
-    _labelled,
-    _labels,
-    _missing,
-    _require,
     dataset_sort_key,
     display_name,
-    runtime_table,
-    task_scores,
+    is_missing,
+    labelled,
+    ordered_labels,
+    require_columns,
 )
 from eabc.experiments.stats import _profile_batched, performance_profile, stratified_bootstrap_ci
+from eabc.experiments.tables import runtime_table, task_scores
 
 
 def _new_figure(panels: int, panel_size=(4.0, 3.0), bottom: float = 0.6, top: float = 0.6):
@@ -83,7 +82,7 @@ def _save(fig, path: str | Path) -> Path:
 
 def _curve_stats(runs: pd.DataFrame, evaluations: pd.DataFrame, by: str) -> pd.DataFrame:
     """Mean and std over seeds of the score at each step, per ``(dataset, by)``."""
-    _require(evaluations, ("run_id", "step", "score"), "evaluations")
+    require_columns(evaluations, ("run_id", "step", "score"), "evaluations")
     merged = evaluations[["run_id", "step", "score"]].merge(
         runs[["run_id", "dataset", by]], on="run_id"
     )
@@ -136,15 +135,15 @@ def plot_learning_curves(runs: pd.DataFrame, evaluations: pd.DataFrame, path: st
 
     The line is the mean over seeds, the band +-1 std over seeds (ddof 1; none with one seed).
     """
-    runs = _labelled(runs)
+    runs = labelled(runs)
     stats = _curve_stats(runs, evaluations, "label")
     title = "Learning curves: mean ± 1 std over seeds"
-    return _plot_curves(stats, "label", _labels(runs), path, title, names=display_name)
+    return _plot_curves(stats, "label", ordered_labels(runs), path, title, names=display_name)
 
 
 def _value_key(value):
     """A hashable, comparable form of a setting (NaN/None -> None, floats rounded)."""
-    if _missing(value):
+    if is_missing(value):
         return None
     return round(float(value), 9) if isinstance(value, int | float | np.number) else str(value)
 
@@ -207,8 +206,8 @@ def _ablation_runs(runs: pd.DataFrame, parameter: str, algo: str) -> pd.DataFram
     """
     if parameter not in ABLATION_PARAMETERS:
         raise ValueError(f"unknown ablation parameter {parameter!r}; use {ABLATION_PARAMETERS}")
-    _require(runs, ABLATION_PARAMETERS, "runs")
-    runs = _labelled(runs)
+    require_columns(runs, ABLATION_PARAMETERS, "runs")
+    runs = labelled(runs)
     sub = runs[runs["algo"] == algo]
     kept = []
     for dataset, group in sub.groupby("dataset"):

@@ -1,389 +1,38 @@
-"""The paper's tables from experiment results, and ``write_report``, which writes every table and
-figure of a sweep.
+"""``write_report``: every table and figure of a sweep into one folder, and a ``report.md`` (and
+``report.html``) that shows them all.
 
-Inputs are the two frames of the results store (:mod:`eabc.experiments.results`): ``runs``, one row
-per training run (``run_id, dataset, algo, variant, seed, num_critics, confidence_level, pessimism,
-status, steps, wall_time_s, steps_per_s, final_score``), and ``evaluations``, one row per evaluation
-(``run_id, step, score``). A run's *label* is its algorithm plus its variant (``eabc``, ``eabc K=5``).
-
-- Table 1 / 6: :func:`score_table` and its renderers :func:`to_markdown`, :func:`to_html`,
-  :func:`to_latex` (mean +- std over seeds of each run's final score; best mean per row in bold).
-- :func:`runtime_table` (Figure 5's numbers) and :func:`aggregate_table` (median, IQM, mean and
-  optimality gap with stratified-bootstrap CIs, from :mod:`eabc.experiments.stats`).
-- Figures 1-5 and the performance profiles are drawn by :mod:`eabc.experiments.figures`.
-- :func:`write_report` writes all of it, plus a ``report.md`` that shows everything in one file.
+The tables come from :mod:`eabc.experiments.tables`, Figures 1-5 and the performance profiles from
+:mod:`eabc.experiments.figures`; this module adds what the cells rest on (evaluations per score,
+runs per cell) and the pages.
 """
 
 from __future__ import annotations
 
 import html
-import math
 import re
-from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-from eabc.agents import ALGORITHMS
-from eabc.data import tasks
-from eabc.experiments.stats import STATISTICS, _aggregates_batched, stratified_bootstrap_ci
-
-ENV_ORDER = ("hopper", "halfcheetah", "walker2d")
-KIND_ORDER = ("random", "medium", "medium-replay", "medium-expert", "expert")
-ABLATION_PARAMETERS = tuple(
-    dict.fromkeys(k for a in ALGORITHMS.values() for k in a.report_settings)
+from eabc.experiments.labels import ABLATION_PARAMETERS, display_name
+from eabc.experiments.tables import (
+    AVERAGE,
+    MIN_RUNS,
+    aggregate_table,
+    aggregate_to_markdown,
+    runtime_table,
+    runtime_to_markdown,
+    score_table,
+    stability_table,
+    stability_to_markdown,
+    to_html,
+    to_latex,
+    to_markdown,
 )
-"""The settings some algorithm's contract lets reports compare (EABC's K, p and pessimism)."""
-AVERAGE = "Average"
-UNKNOWN_COLUMN = 12.5
-"""Where an algorithm the registry does not know goes among the columns (just before EABC's)."""
-MIN_RUNS = 3
-"""Fewer runs per dataset than this and a bootstrap interval or a std says little: flagged."""
-
-
-# ----------------------------------------------------------------------------------------------
-# Labels and ordering
-
-
-def algo_label(algo: str, variant: str | None = "") -> str:
-    """``algo`` plus its variant when it has one, e.g. ``eabc K=5``."""
-    variant = "" if _missing(variant) else str(variant).strip()
-    return f"{algo} {variant}" if variant else str(algo)
-
-
-def display_name(label: str) -> str:
-    """A label as a reader of the paper knows it: ``td3bc`` -> ``TD3+BC``, ``eabc K=5`` ->
-    ``EABC K=5`` (a variant keeps its settings); unknown algorithms keep their id."""
-    algo, _, variant = str(label).partition(" ")
-    name = ALGORITHMS[algo].display_name if algo in ALGORITHMS else algo
-    return f"{name} {variant}" if variant else name
-
-
-def dataset_sort_key(name: str) -> tuple:
-    """Hopper, HalfCheetah, Walker2d, then other environments; random ... expert within each."""
-    task = tasks.parse_task(name)
-    env, _, kind = name.partition("-") if task is None else (task[0], "", task[1])
-    env_rank = ENV_ORDER.index(env) if env in ENV_ORDER else len(ENV_ORDER)
-    kind_rank = KIND_ORDER.index(kind) if kind in KIND_ORDER else len(KIND_ORDER)
-    return (env_rank, env, kind_rank, kind, name)
-
-
-def _natural_key(text: str) -> tuple:
-    """Numbers compare as numbers, so ``K=5`` comes before ``K=10``."""
-    parts = re.split(r"(-?\d+(?:\.\d+)?)", text)
-    return tuple((0, float(p), "") if i % 2 else (1, 0.0, p) for i, p in enumerate(parts) if p)
-
-
-def _label_key(algo: str, variant: str) -> tuple:
-    rank = ALGORITHMS[algo].column if algo in ALGORITHMS else UNKNOWN_COLUMN
-    return (rank, algo, variant != "", _natural_key(variant))
-
-
-def _missing(value) -> bool:
-    return value is None or (isinstance(value, float) and math.isnan(value))
-
-
-def _labelled(runs: pd.DataFrame) -> pd.DataFrame:
-    _require(runs, ("run_id", "dataset", "algo", "seed"), "runs")
-    if runs.empty:
-        raise ValueError("there are no runs to report on")
-    runs = runs.copy()
-    variant = runs["variant"] if "variant" in runs else pd.Series("", index=runs.index)
-    runs["variant"] = ["" if _missing(v) else str(v).strip() for v in variant]
-    runs["label"] = [algo_label(a, v) for a, v in zip(runs["algo"], runs["variant"])]
-    return runs
-
-
-def _labels(runs: pd.DataFrame) -> list[str]:
-    pairs = runs[["algo", "variant", "label"]].drop_duplicates("label")
-    ordered = sorted(pairs.itertuples(index=False), key=lambda r: _label_key(r.algo, r.variant))
-    return [r.label for r in ordered]
-
-
-def _datasets(runs: pd.DataFrame) -> list[str]:
-    return sorted(runs["dataset"].unique(), key=dataset_sort_key)
-
-
-def _require(frame: pd.DataFrame, columns: Sequence[str], name: str) -> None:
-    missing = [c for c in columns if c not in frame.columns]
-    if missing:
-        raise ValueError(f"{name} lacks column(s) {missing}; it has {list(frame.columns)}")
-
-
-# ----------------------------------------------------------------------------------------------
-# Table 1
-
-
-def score_table(runs: pd.DataFrame, metric: str = "final_score") -> pd.DataFrame:
-    """Mean and std over seeds of ``metric`` per dataset (rows) and algorithm label (columns).
-
-    Columns are a MultiIndex ``(label, stat)`` with ``stat`` in ``mean``, ``std`` (sample std,
-    ddof 1, NaN with one seed) and ``runs`` (runs with a finite value); e.g.
-    ``table.xs("mean", axis=1, level="stat")`` is the frame of means. Runs whose value is NaN are
-    left out. The last row, ``Average``, holds the mean of the per-dataset means and of the
-    per-dataset stds (the paper's "average standard deviation"), each over the datasets where that
-    column has a value, and the total number of runs.
-    """
-    _require(runs, (metric,), "runs")
-    runs = _labelled(runs)
-    labels, datasets = _labels(runs), _datasets(runs)
-    valid = runs[np.isfinite(runs[metric].astype(float))]
-    stats = valid.groupby(["dataset", "label"])[metric].agg(["mean", "std", "count"])
-    frames = {}
-    for stat, column in (("mean", "mean"), ("std", "std"), ("runs", "count")):
-        frame = stats[column].unstack("label").reindex(index=datasets, columns=labels)
-        frame = frame.astype(float)
-        if stat == "runs":
-            frame = frame.fillna(0)
-        summary = frame.sum(axis=0) if stat == "runs" else frame.mean(axis=0, skipna=True)
-        frames[stat] = pd.concat([frame, summary.to_frame(AVERAGE).T])
-    table = pd.concat(frames, axis=1, names=["stat", "label"]).swaplevel(axis=1)
-    table = table.reindex(columns=pd.MultiIndex.from_product([labels, list(frames)]))
-    table.columns.names = ["label", "stat"]
-    table.index.name = "dataset"
-    return table
-
-
-def _cells(table: pd.DataFrame, pm: str, missing: str) -> list[tuple[str, list[tuple[str, bool]]]]:
-    """Each row's name and its cells as ``(text, is_best)``; best = highest mean as displayed."""
-    mean = table.xs("mean", axis=1, level="stat")
-    std = table.xs("std", axis=1, level="stat")
-    rows = []
-    for name in mean.index:
-        shown = {c: float(f"{mean.at[name, c]:.1f}") for c in mean.columns}
-        finite = [v for v in shown.values() if math.isfinite(v)]
-        best = max(finite) if finite else math.nan
-        cells = []
-        for column in mean.columns:
-            m, s = mean.at[name, column], std.at[name, column]
-            if not math.isfinite(m):
-                cells.append((missing, False))
-                continue
-            text = f"{m:.1f}" + (f" {pm} {s:.1f}" if math.isfinite(s) else "")
-            cells.append((text, shown[column] == best))
-        rows.append((str(name), cells))
-    return rows
-
-
-def _columns(table: pd.DataFrame) -> list[str]:
-    return [str(c) for c in table.columns.get_level_values("label").unique()]
-
-
-def to_markdown(table: pd.DataFrame) -> str:
-    """A Markdown table of ``mean ± std`` (one decimal), the best mean of each row in bold."""
-    escape = lambda text: text.replace("|", "\\|")
-    lines = [
-        "| " + " | ".join(["Dataset", *(escape(display_name(c)) for c in _columns(table))]) + " |",
-        "|" + "---|" + ":---:|" * len(_columns(table)),
-    ]
-    for name, cells in _cells(table, "±", "–"):
-        texts = [f"**{t}**" if best else t for t, best in cells]
-        lines.append("| " + " | ".join([escape(name), *texts]) + " |")
-    return "\n".join(lines) + "\n"
-
-
-def to_html(table: pd.DataFrame) -> str:
-    """An HTML ``<table>`` of ``mean ± std``, the best mean of each row in ``<b>``."""
-    names = ["Dataset", *map(display_name, _columns(table))]
-    head = "".join(f"<th>{html.escape(c)}</th>" for c in names)
-    body = []
-    for name, cells in _cells(table, "&plusmn;", "&ndash;"):
-        tds = "".join(f"<td><b>{t}</b></td>" if best else f"<td>{t}</td>" for t, best in cells)
-        body.append(f"    <tr><th>{html.escape(name)}</th>{tds}</tr>")
-    return "\n".join(
-        ['<table class="scores">', f"  <thead><tr>{head}</tr></thead>", "  <tbody>", *body]
-        + ["  </tbody>", "</table>"]
-    )
-
-
-def _latex_escape(text: str) -> str:
-    special = {"\\": r"\textbackslash{}", "&": r"\&", "%": r"\%", "$": r"\$", "#": r"\#"}
-    special |= {"_": r"\_", "{": r"\{", "}": r"\}", "~": r"\textasciitilde{}", "^": r"\^{}"}
-    return "".join(special.get(ch, ch) for ch in text)
-
-
-def to_latex(table: pd.DataFrame) -> str:
-    """A booktabs ``tabular`` of ``mean $\\pm$ std``, the best mean of each row in ``\\textbf``."""
-    columns = _columns(table)
-    lines = [
-        "% needs \\usepackage{booktabs}",
-        "\\begin{tabular}{l" + "c" * len(columns) + "}",
-        "\\toprule",
-        " & ".join(["Dataset", *(_latex_escape(display_name(c)) for c in columns)]) + " \\\\",
-        "\\midrule",
-    ]
-    for name, cells in _cells(table, "$\\pm$", "--"):
-        if name == AVERAGE:
-            lines.append("\\midrule")
-        texts = [f"\\textbf{{{t}}}" if best else t for t, best in cells]
-        lines.append(" & ".join([_latex_escape(name), *texts]) + " \\\\")
-    return "\n".join([*lines, "\\bottomrule", "\\end{tabular}"]) + "\n"
-
-
-# ----------------------------------------------------------------------------------------------
-# Runtime and aggregate tables
-
-
-def runtime_table(runs: pd.DataFrame) -> pd.DataFrame:
-    """Hours of wall-clock time per 1M gradient steps (``1e6 / steps_per_s``) per label.
-
-    Columns ``mean``, ``std`` (over runs, all datasets pooled; ddof 1) and ``runs``; runs without a
-    positive ``steps_per_s`` are left out.
-    """
-    _require(runs, ("steps_per_s",), "runs")
-    runs = _labelled(runs)
-    rate = runs["steps_per_s"].astype(float)
-    runs = runs[np.isfinite(rate) & (rate > 0)]
-    hours = 1e6 / runs["steps_per_s"].astype(float) / 3600.0
-    table = hours.groupby(runs["label"]).agg(["mean", "std", "count"])
-    table = table.rename(columns={"count": "runs"})
-    return table.reindex([label for label in _labels(runs) if label in table.index])
-
-
-def _runtime_markdown(table: pd.DataFrame) -> str:
-    lines = ["| Algorithm | Runs | Hours per 1M steps |", "|---|---:|:---:|"]
-    for label, row in table.iterrows():
-        std = 0.0 if math.isnan(row["std"]) else row["std"]
-        lines.append(
-            f"| {display_name(label)} | {int(row['runs'])} | {row['mean']:.2f} ± {std:.2f} |"
-        )
-    return "\n".join(lines) + "\n"
-
-
-def task_scores(runs: pd.DataFrame, metric: str = "final_score") -> dict[str, list[np.ndarray]]:
-    """Per algorithm label, the finite ``metric`` values of its runs, one array per dataset."""
-    runs = _labelled(runs)
-    runs = runs[np.isfinite(runs[metric].astype(float))]
-    out = {}
-    for label in _labels(runs):
-        mine = runs[runs["label"] == label]
-        out[label] = [
-            mine.loc[mine["dataset"] == d, metric].to_numpy(dtype=float) for d in _datasets(mine)
-        ]
-    return out
-
-
-def aggregate_table(
-    runs: pd.DataFrame,
-    metric: str = "final_score",
-    reps: int = 2000,
-    alpha: float = 0.05,
-    seed: int = 0,
-) -> pd.DataFrame:
-    """Median, IQM, mean and optimality gap per label, each with a stratified-bootstrap CI.
-
-    Columns: ``tasks``, ``runs``, then ``NAME``, ``NAME_low``, ``NAME_high`` for each statistic.
-    Each label is aggregated over the datasets it was run on (compare labels with equal ``tasks``).
-    """
-    rows = {}
-    for label, scores in task_scores(runs, metric).items():
-        low, high = stratified_bootstrap_ci(scores, _aggregates_batched, reps, alpha, seed, True)
-        estimates = [statistic(scores) for statistic in STATISTICS.values()]
-        row = {"tasks": len(scores), "runs": sum(s.size for s in scores)}
-        for i, (name, estimate) in enumerate(zip(STATISTICS, estimates)):
-            row |= {name: estimate, f"{name}_low": low[i], f"{name}_high": high[i]}
-        rows[label] = row
-    columns = ["tasks", "runs"] + [f"{n}{s}" for n in STATISTICS for s in ("", "_low", "_high")]
-    return pd.DataFrame.from_dict(rows, orient="index", columns=columns).rename_axis("label")
-
-
-def aggregate_to_markdown(table: pd.DataFrame, alpha: float = 0.05) -> str:
-    """The aggregate table as Markdown: ``estimate [low, high]`` per statistic."""
-    names = {"median": "Median", "iqm": "IQM", "mean": "Mean", "optimality_gap": "Optimality gap"}
-    lines = [
-        "| Algorithm | Tasks | Runs | " + " | ".join(names.values()) + " |",
-        "|---|---:|---:|" + ":---:|" * len(names),
-    ]
-    for label, row in table.iterrows():
-        cells = [f"{row[n]:.1f} [{row[n + '_low']:.1f}, {row[n + '_high']:.1f}]" for n in names]
-        lines.append(
-            f"| {display_name(label)} | {int(row['tasks'])} | {int(row['runs'])} | "
-            + " | ".join(cells)
-            + " |"
-        )
-    note = (
-        f"\nPoint estimates with {100 * (1 - alpha):g}% stratified-bootstrap confidence intervals "
-        "(Agarwal et al., 2021). Median and mean are over the per-dataset mean scores, IQM over all "
-        "runs pooled; a lower optimality gap (mean of max(0, 100 - score)) is better.\n"
-    )
-    return "\n".join(lines) + "\n" + note
-
 
 # ----------------------------------------------------------------------------------------------
 # The report
-
-
-def stability_table(runs: pd.DataFrame) -> pd.DataFrame:
-    """Where each algorithm's critics fail, dataset by dataset (issue 14's diagnostics).
-
-    One row per dataset and label: ``runs``; ``score`` (mean of the final scores) and
-    ``score_std``; ``out_of_range`` (runs whose mean Q left the value range the rewards allow);
-    ``first_out_of_range_step`` (the earliest over its runs); ``q_mean_max`` (median over runs of
-    the largest logged mean Q); ``policy_spread`` (median of ``policy_q_std / |q_mean|`` at the
-    last log row: how much of the value ``mean - std`` subtracts at the policy's actions);
-    ``spread_ratio`` (median of ``policy_q_std / q_ensemble_std`` at the last row: above 1 the
-    policy acts where the ensemble is less sure than at the data's own actions); ``bc_fraction``
-    (median at the last row: the share of samples whose BC term was on).
-    """
-    runs = _labelled(runs)
-    rows = []
-    for (dataset, label), group in runs.groupby(["dataset", "label"], sort=False):
-        numeric = lambda c, g=group: pd.to_numeric(g[c], errors="coerce") if c in g else None  # noqa: E731
-        out = numeric("q_out_of_range_step")
-        q_last = numeric("q_mean_last")
-        spread = numeric("policy_q_std_last")
-        data_spread = numeric("q_ensemble_std_last")
-        scores = numeric("final_score").dropna()
-        rows.append(
-            {
-                "dataset": dataset,
-                "label": label,
-                "runs": len(group),
-                "score": scores.mean() if len(scores) else math.nan,
-                "score_std": scores.std(ddof=1) if len(scores) > 1 else math.nan,
-                "out_of_range": int(out.notna().sum()) if out is not None else 0,
-                "first_out_of_range_step": out.min() if out is not None else math.nan,
-                "q_mean_max": numeric("q_mean_max").median() if "q_mean_max" in group else math.nan,
-                "policy_spread": (spread / q_last.abs()).median()
-                if spread is not None
-                else math.nan,
-                "spread_ratio": (spread / data_spread).median()
-                if spread is not None and data_spread is not None
-                else math.nan,
-                "bc_fraction": numeric("bc_fraction_last").median()
-                if "bc_fraction_last" in group
-                else math.nan,
-            }
-        )
-    table = pd.DataFrame(rows)
-    order = {label: i for i, label in enumerate(_labels(runs))}
-    table["_d"] = [dataset_sort_key(d) for d in table["dataset"]]
-    table["_l"] = [order[label] for label in table["label"]]
-    return table.sort_values(["_d", "_l"]).drop(columns=["_d", "_l"]).reset_index(drop=True)
-
-
-def stability_to_markdown(table: pd.DataFrame) -> str:
-    def fmt(value, pattern):
-        return "" if _missing(value) or not np.isfinite(value) else pattern.format(value)
-
-    lines = [
-        "| Dataset | Algorithm | runs | score | out of range | first step out | max mean Q | "
-        "spread at pi | spread ratio | BC fraction |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|",
-    ]
-    for r in table.itertuples(index=False):
-        score = fmt(r.score, "{:.1f}") + (
-            f" ± {r.score_std:.1f}" if np.isfinite(r.score_std) else ""
-        )
-        lines.append(
-            f"| {r.dataset} | {display_name(r.label)} | {r.runs} | {score} | "
-            f"{r.out_of_range}/{r.runs} | "
-            f"{fmt(r.first_out_of_range_step, '{:,.0f}')} | {fmt(r.q_mean_max, '{:,.0f}')} | "
-            f"{fmt(r.policy_spread, '{:.2%}')} | {fmt(r.spread_ratio, '{:.2f}')} | "
-            f"{fmt(r.bc_fraction, '{:.2f}')} |"
-        )
-    return "\n".join(lines) + "\n"
 
 
 def _diverged_runs(runs: pd.DataFrame) -> list[str]:
@@ -528,7 +177,7 @@ def write_report(
         *(["## Ablations (Figures 2-4)\n", *ablations] if ablations else []),
         "## Runtime (Figure 5)\n",
         RUNTIME_NOTE + "\n",
-        _runtime_markdown(runtime_table(runs)),
+        runtime_to_markdown(runtime_table(runs)),
         "![Runtime](runtime.png)\n",
     ]
     write("report.md", "\n".join(sections))
