@@ -1,0 +1,127 @@
+"""The ``eabc`` command line, generated from typed dataclasses (``eabc --help``, ``eabc train --help``).
+
+One module per group of commands: :mod:`~eabc.cli.train` (train, evaluate, sac, export-policy),
+:mod:`~eabc.cli.experiments` (sweep, results, report), :mod:`~eabc.cli.data` (data, zoo);
+:mod:`~eabc.cli.options` holds what they share. :func:`main` dispatches.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+
+import tyro
+
+from eabc import __version__, compile_cache
+from eabc.cli.data import (
+    DataExport,
+    DataInfo,
+    DataList,
+    DataMake,
+    ZooBuild,
+    ZooPack,
+    run_data,
+    run_zoo,
+)
+from eabc.cli.experiments import (
+    SWEEP_PRESETS,
+    Report,
+    Results,
+    Sweep,
+    run_report,
+    run_results,
+    run_sweep,
+    sweep_spec,
+)
+from eabc.cli.options import _checked, parse_settings
+from eabc.cli.train import (
+    Evaluate,
+    ExportPolicy,
+    Sac,
+    Train,
+    run_evaluate,
+    run_sac,
+    run_train,
+    sac_agent_config,
+)
+from eabc.training.online import SACTrainConfig
+from eabc.training.trainer import TrainConfig
+
+__all__ = [
+    "SWEEP_PRESETS", "DataExport", "DataInfo", "DataList", "DataMake", "Evaluate", "ExportPolicy",
+    "Report", "Results", "Sac", "Sweep", "Train", "ZooBuild", "ZooPack", "main", "parse_settings",
+    "sac_agent_config", "sweep_spec",
+]  # fmt: skip
+
+
+def main(argv: list[str] | None = None) -> None:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    commands: dict[str, type] = {
+        "train": Train,
+        "evaluate": Evaluate,
+        "sac": Sac,
+        "sweep": Sweep,
+        "results": Results,
+        "report": Report,
+        "export-policy": ExportPolicy,
+        "data": DataList,
+        "zoo": ZooPack,
+    }
+    description = "EABC: ensemble-based offline RL with adaptive behaviour cloning."
+    if argv[:1] in (["--version"], ["-V"]):
+        print(f"eabc {__version__}")
+        return
+    prog = "eabc"
+    if argv[:1] == ["data"]:  # a second level: eabc data {make,list,info}
+        commands = {"make": DataMake, "list": DataList, "info": DataInfo, "export": DataExport}
+        argv = argv[1:]
+        prog = "eabc data"
+        description = "Datasets: make the built-in ones, list the cache, describe any dataset, export to Minari."
+    elif argv[:1] == ["zoo"]:  # eabc zoo {build,pack}
+        commands = {"build": ZooBuild, "pack": ZooPack}
+        argv = argv[1:]
+        prog = "eabc zoo"
+        description = (
+            "The behaviour-policy zoo: build an entry from an `eabc sac` run, or pack a run."
+        )
+    try:
+        cmd = tyro.extras.subcommand_cli_from_dict(
+            commands,
+            args=argv,
+            prog=prog,  # not the interpreter's path to the entry point
+            description=description,
+            config=(tyro.conf.DisallowNone,),  # --env STR, not --env {None}|STR
+        )
+        if isinstance(cmd, Train | Sac):  # checked here, so that errors name the flags
+            config_class = TrainConfig if isinstance(cmd, Train) else SACTrainConfig
+            cmd = dataclasses.replace(cmd, config=_checked(cmd.config, config_class))
+    except ValueError as error:  # invalid settings caught in a dataclass __post_init__
+        sys.exit(f"error: {error}")
+    options = getattr(cmd, "config", cmd)
+    compile_cache.enable(cache_root=getattr(options, "cache_dir", None))
+    try:
+        if isinstance(cmd, Train):
+            run_train(cmd)
+        elif isinstance(cmd, Evaluate):
+            run_evaluate(cmd)
+        elif isinstance(cmd, Sac):
+            run_sac(cmd)
+        elif isinstance(cmd, Sweep):
+            run_sweep(cmd)
+        elif isinstance(cmd, Results):
+            run_results(cmd)
+        elif isinstance(cmd, Report):
+            run_report(cmd)
+        elif isinstance(cmd, ExportPolicy):
+            from eabc import deploy  # noqa: PLC0415
+
+            print(deploy.export_onnx(cmd.run_dir, cmd.onnx))
+        elif isinstance(cmd, ZooBuild | ZooPack):
+            run_zoo(cmd)
+        else:
+            run_data(cmd)
+    except (ValueError, FileNotFoundError, FileExistsError, RuntimeError) as error:
+        sys.exit(f"error: {error}")
+    except OSError as error:  # e.g. a directory where a file should be, no permission
+        sys.exit(f"error: {error.filename or ''}: {error.strerror or error}; check that path")
+

@@ -1,0 +1,5 @@
+"""``python -m eabc.cli``: the ``eabc`` command."""
+
+from eabc.cli import main
+
+main()

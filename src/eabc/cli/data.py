@@ -1,0 +1,147 @@
+"""``eabc data {make,list,info,export}`` and ``eabc zoo {build,pack}``."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import sys
+from typing import Annotated
+
+import tyro
+
+
+@dataclasses.dataclass(frozen=True)
+class DataMake:
+    """Make a built-in D4RL-style dataset (e.g. hopper-random) in the cache directory."""
+
+    name: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="NAME")]
+    seed: int = 0
+    """Seed of the environment and the actions; the same seed gives the same file."""
+    size: int | None = None
+    """Transitions (default D4RL's size)."""
+    cache_dir: str | None = None
+    """Cache directory (default $EABC_CACHE_DIR or ~/.cache/eabc)."""
+    force: bool = False
+    """Remake the dataset even if it is cached."""
+
+
+@dataclasses.dataclass(frozen=True)
+class DataInfo:
+    """Describe a dataset: size, episodes, returns and normalised score."""
+
+    name: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="NAME")]
+    """A built-in name, a file path or minari:ID."""
+    cache_dir: str | None = None
+    """Cache directory (default $EABC_CACHE_DIR or ~/.cache/eabc)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class DataList:
+    """List the built-in datasets and which of them are in the cache."""
+
+    cache_dir: str | None = None
+    """Cache directory (default $EABC_CACHE_DIR or ~/.cache/eabc)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class ZooBuild:
+    """Choose the medium and expert policies of an `eabc sac` run into the behaviour-policy zoo."""
+
+    run_dir: tyro.conf.Positional[str]
+    """The `eabc sac` run directory (its actor snapshots and log)."""
+    env: tyro.conf.Positional[str]
+    """hopper, halfcheetah or walker2d."""
+    root: str | None = None
+    """Zoo directory (default: the package's, or $EABC_ZOO_DIR)."""
+    episodes: int = 10
+    """Episodes per measured snapshot (sampled actions, as the datasets are made)."""
+    expert_candidates: int = 5
+    """The expert is the best of this many last snapshots."""
+    medium_return: float | None = None
+    """Return the medium policy aims at (default: D4RL's medium level)."""
+    rechoose_medium: bool = False
+    """Search for the medium policy again even if the zoo already has one."""
+
+
+@dataclasses.dataclass(frozen=True)
+class ZooPack:
+    """Copy a SAC run's checkpoint, log and float16 snapshots (no replay buffer) into DEST."""
+
+    run_dir: tyro.conf.Positional[str]
+    dest: tyro.conf.Positional[str]
+
+
+def run_zoo(cmd: ZooBuild | ZooPack) -> None:
+    from eabc.data import zoo  # noqa: PLC0415
+    from eabc.training import zoo_build  # noqa: PLC0415
+
+    if isinstance(cmd, ZooPack):
+        print(zoo_build.pack(cmd.run_dir, cmd.dest))
+        return
+    medium_step = None
+    if (zoo.zoo_dir(cmd.root) / cmd.env / zoo.CARD).exists() and not cmd.rechoose_medium:
+        medium_step = zoo.card(cmd.env, cmd.root)["medium"]["step"]
+        print(f"keeping the zoo's medium policy (step {medium_step}); --rechoose-medium to search")
+    card = zoo_build.build(
+        cmd.run_dir,
+        cmd.env,
+        cmd.root,
+        cmd.episodes,
+        expert_candidates=cmd.expert_candidates,
+        medium_return=cmd.medium_return,
+        medium_step=medium_step,
+    )
+    print(json.dumps({k: card[k] for k in ("expert", "medium")}, indent=2))
+
+
+@dataclasses.dataclass(frozen=True)
+class DataExport:
+    """Export a dataset to the local Minari path, for d3rlpy, CORL and other Minari readers."""
+
+    name: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="NAME")]
+    """A built-in name (made first if needed), a file path or minari:ID."""
+    minari: bool = True
+    """Export as a Minari dataset (the only format for now)."""
+    dataset_id: str | None = None
+    """The Minari id (default eabc/ENV/KIND-v0, e.g. eabc/hopper/medium-v0)."""
+    force: bool = False
+    """Replace an existing Minari dataset of that id."""
+    cache_dir: str | None = None
+    """Cache directory (default $EABC_CACHE_DIR or ~/.cache/eabc)."""
+
+
+def run_data(cmd: DataMake | DataInfo | DataList | DataExport) -> None:
+    from eabc.data import generate, loaders, sources  # noqa: PLC0415
+
+    if isinstance(cmd, DataMake):
+        path = generate.dataset_path(cmd.name, cmd.cache_dir)
+        if path.exists() and not cmd.force:
+            if generate.is_current(path, cmd.name):
+                print(f"{path} (cached; --force to remake)")
+                return
+            print(f"{path} was made from older zoo policies; making it again", file=sys.stderr)
+        print(generate.make(cmd.name, path, seed=cmd.seed, size=cmd.size))
+    elif isinstance(cmd, DataList):
+        header = f"{'dataset':26s} {'transitions':>11s} {'episodes':>8s} {'return':>17s} {'score':>6s} {'D4RL':>5s}  file"
+        print(header)
+        for name in generate.builtin_names():
+            path = generate.dataset_path(name, cmd.cache_dir)
+            level = generate.d4rl_level(name)
+            if not path.exists():
+                print(
+                    f"{name:26s} {'-':>11s} {'-':>8s} {'-':>17s} {'-':>6s} {level:5.0f}  (not made)"
+                )
+                continue
+            info = generate.describe(path)
+            spread = f"{info['return_mean']:.0f} +- {info['return_std']:.0f}"
+            print(
+                f"{name:26s} {info['transitions']:11d} {info['episodes']:8d} {spread:>17s} "
+                f"{info['normalized_return']:6.1f} {level:5.0f}  {path}"
+            )
+    elif isinstance(cmd, DataExport):
+        dataset = sources.load_dataset(cmd.name, cmd.cache_dir)
+        dataset_id = cmd.dataset_id or loaders.minari_id(dataset.name)
+        print(loaders.export_minari(dataset, dataset_id, overwrite=cmd.force))
+    else:
+        dataset = sources.load_dataset(cmd.name, cmd.cache_dir)
+        print(json.dumps(generate.describe_dataset(dataset), indent=2))

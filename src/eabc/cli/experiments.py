@@ -1,0 +1,216 @@
+"""``eabc sweep``, ``eabc results`` and ``eabc report``."""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+from pathlib import Path
+from typing import Annotated, Literal
+
+import tyro
+
+from eabc.cli.options import parse_value
+from eabc.experiments.presets import PRESETS as _SWEEP_PRESETS
+
+SWEEP_PRESETS = tuple(_SWEEP_PRESETS)
+"""The names of ``eabc.experiments.presets.PRESETS``, the choices of ``eabc sweep --preset``."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Sweep:
+    """Run a grid of experiments: datasets x algorithms x settings x seeds, resumable.
+
+    Each run gets its own directory under ROOT/runs; running the same sweep again skips finished
+    runs and resumes interrupted ones. Results go to ROOT/results.sqlite (`eabc results ROOT`) and
+    the paper's tables and figures come from `eabc report ROOT`.
+    """
+
+    spec: Annotated[str | None, tyro.conf.Positional, tyro.conf.arg(metavar="SPEC")] = None
+    """A YAML file with datasets, algos, seeds, steps, grid and train keys (optional)."""
+    preset: Literal[SWEEP_PRESETS] | None = None  # type: ignore[valid-type]
+    """The paper's grids (table1, table6, ablation-*: 15 datasets x 5 seeds) or issue 14's study
+    (study-screen: every EABC variant, 2 seeds x 50K steps; study: 3 seeds x 100K; study-1m)."""
+    root: str = "sweeps/default"
+    """The sweep's directory (runs, logs, results)."""
+    datasets: tuple[str, ...] = ()
+    """Datasets (replace the spec's or preset's)."""
+    algos: tuple[str, ...] = ()
+    """Algorithms (replace the spec's or preset's)."""
+    seeds: tuple[int, ...] = ()
+    """Seeds (replace the spec's or preset's)."""
+    steps: int | None = None
+    """Gradient steps per run (default the spec's, else 1M), e.g. to shorten a preset."""
+    grid: tuple[str, ...] = ()
+    """Extra grid axes as KEY=V1,V2 (e.g. num_critics=5,10 pessimism=min,mean-std); put
+    tuple-valued settings such as hidden_dims in a YAML spec."""
+    backend: Literal["local", "ray"] = "local"
+    """local: a process pool on this machine; ray: one Ray task per job."""
+    ray_address: str = "auto"
+    """Ray cluster address (auto: the running cluster, or HOST:PORT)."""
+    workers: int | None = None
+    """Local processes at once (default: one per CPU core)."""
+    layout: Literal["auto", "vmap", "processes"] = "auto"
+    """vmap: a seed group trains in one process, vectorised (GPU); processes: one single-threaded
+    process per run (CPU); auto: vmap on an accelerator, processes on a CPU."""
+    cpus_per_job: float = 1.0
+    """Ray: CPUs declared per job."""
+    gpus_per_job: float = 0.0
+    """Ray: GPUs declared per job (e.g. 0.25 to pack four jobs per GPU)."""
+    dry_run: bool = False
+    """List the runs, their state and the estimated cost, then stop."""
+    eval_interval: int | None = None
+    """Evaluate every this many steps (default the spec's, else 5000)."""
+    eval_episodes: int | None = None
+    """Episodes per evaluation (default the spec's, else 10)."""
+    log_interval: int | None = None
+    """Steps per compiled chunk and log row (default the spec's, else 1000)."""
+    checkpoint_interval: int | None = None
+    """Checkpoint every this many steps (default the spec's, else 5000)."""
+    batch_size: int | None = None
+    """Mini-batch size (default the spec's, else 256)."""
+
+
+SWEEP_TRAIN_FLAGS = (
+    "eval_interval", "eval_episodes", "log_interval", "checkpoint_interval", "batch_size",
+)  # fmt: skip
+"""The train options `eabc sweep` takes as flags (any other goes in a spec's train: key)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Results:
+    """List the runs of a sweep root (or any directory of runs) from its results store."""
+
+    root: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="ROOT")]
+    """A sweep root or any directory that holds run directories."""
+    filter: tuple[str, ...] = ()
+    """KEY=VALUE filters, e.g. dataset=hopper-* algo=eabc status=done."""
+    columns: tuple[str, ...] = (
+        "run_id", "status", "steps", "final_score", "steps_per_s", "wall_time_s",
+        "q_out_of_range_step",
+    )  # fmt: skip
+    """Columns to show."""
+    csv: bool = False
+    """Print CSV instead of a table."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Report:
+    """Make the paper's tables (Markdown, HTML, LaTeX) and figures from a sweep's results."""
+
+    root: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="ROOT")]
+    out: str | None = None
+    """Output directory (default ROOT/report)."""
+
+
+def sweep_spec(cmd: Sweep) -> dict:
+    from eabc.experiments.presets import PRESETS  # noqa: PLC0415
+    from eabc.experiments.spec import load_spec  # noqa: PLC0415
+
+    spec: dict = {}
+    if cmd.preset:
+        spec = {**PRESETS[cmd.preset]}
+    if cmd.spec:
+        spec = {**spec, **load_spec(cmd.spec)}
+    for key in ("datasets", "algos", "seeds"):
+        if getattr(cmd, key):
+            spec[key] = list(getattr(cmd, key))
+    if cmd.steps is not None:
+        spec["steps"] = cmd.steps
+    train = {k: getattr(cmd, k) for k in SWEEP_TRAIN_FLAGS if getattr(cmd, k) is not None}
+    if train:  # flags beside the spec's train: keys, which they replace
+        spec["train"] = {**(spec.get("train") or {}), **train}
+    grid = dict(spec.get("grid") or {})
+    for item in cmd.grid:
+        key, sep, values = item.partition("=")
+        if not sep:
+            raise ValueError(f"bad --grid {item!r}; use KEY=V1,V2")
+        grid[key] = [parse_value(v) for v in values.split(",")]
+    if grid:
+        spec["grid"] = grid
+    return spec
+
+
+def run_sweep(cmd: Sweep) -> None:
+    import yaml  # noqa: PLC0415
+
+    from eabc.experiments import results, sweep  # noqa: PLC0415
+    from eabc.experiments.spec import expand  # noqa: PLC0415
+
+    root = Path(cmd.root)
+    runs = expand(sweep_spec(cmd))
+    rows = sweep.plan(runs, root)
+    left = [r for r in rows if r["status"] != "done"]
+    hours = sum(r["seconds"] for r in left) / 3600
+    counts = {s: sum(r["status"] == s for r in rows) for s in ("done", "partial", "pending")}
+    print(
+        f"{len(rows)} runs in {root}: {counts['done']} done, {counts['partial']} partial, "
+        f"{counts['pending']} pending; about {hours:.1f} CPU-core-hours left at this machine's "
+        "measured speeds"
+    )
+    found = sweep.problems(runs, root)
+    for why in found["broken"]:  # one unreadable run does not stop the others
+        print(f"skipping a broken run: {why}", file=sys.stderr)
+    if found["changed"] and not cmd.dry_run:
+        raise ValueError(
+            f"{len(found['changed'])} run(s) in {root} were trained with another spec, e.g. "
+            f"{found['changed'][0]}; use another --root, or move those run directories away"
+        )
+    if cmd.dry_run:
+        for r in rows:
+            spec = r["run"]
+            print(
+                f"  {r['status']:8s} {r['steps_done']:>8d}  ~{r['seconds'] / 3600:6.2f} h  {spec.run_id}"
+            )
+        return
+    layout = sweep.default_layout() if cmd.layout == "auto" else cmd.layout
+    job_list = sweep.jobs(runs, root, layout)
+    sweep.prepare_datasets([job[0] for job in job_list])
+    root.mkdir(parents=True, exist_ok=True)
+    (root / "sweep.yaml").write_text(yaml.safe_dump(sweep_spec(cmd), sort_keys=False))
+    try:
+        if cmd.backend == "ray":
+            sweep.run_ray(job_list, root, cmd.ray_address, cmd.cpus_per_job, cmd.gpus_per_job)
+        else:
+            sweep.run_local(job_list, root, cmd.workers, single_thread=layout == "processes")
+    finally:
+        table, _ = results.collect(root)
+        print(f"results: {root / results.DATABASE} ({len(table)} runs)")
+
+
+def run_results(cmd: Results) -> None:
+    from eabc.experiments import results  # noqa: PLC0415
+
+    if not Path(cmd.root).is_dir():
+        raise FileNotFoundError(f"{cmd.root} does not exist; give a sweep root or a run directory")
+    runs, _ = results.collect(cmd.root)
+    if runs.empty:
+        print(f"no runs under {cmd.root}")
+        return
+    found = len(runs)
+    runs = results.query(runs, list(cmd.filter))
+    if runs.empty:
+        print(f"none of the {found} runs under {cmd.root} match {' '.join(cmd.filter)}")
+        return
+    missing = [c for c in cmd.columns if c not in runs.columns]
+    if missing:
+        raise ValueError(f"unknown column(s) {missing}; choose from {', '.join(runs.columns)}")
+    table = runs[list(cmd.columns)]
+    if cmd.csv:
+        print(table.to_csv(index=False), end="")
+    else:
+        print(table.to_string(index=False, float_format=lambda x: f"{x:.1f}"))
+
+
+def run_report(cmd: Report) -> None:
+    from eabc.experiments import report, results  # noqa: PLC0415
+
+    runs, evaluations = results.collect(cmd.root)
+    broken = runs[runs["status"] == "broken"]
+    for why in broken["config"]:
+        print(f"leaving out a broken run: {why}", file=sys.stderr)
+    runs = runs[runs["status"] != "broken"]
+    if runs.empty:
+        raise ValueError(f"no runs under {cmd.root}")
+    out = Path(cmd.out) if cmd.out else Path(cmd.root) / "report"
+    for name, path in report.write_report(runs, evaluations, out).items():
+        print(f"{name}: {path}")

@@ -1,0 +1,101 @@
+"""What the commands share: parsing a checked config's flags, the algorithm flags made from the
+contracts, and ``KEY=VALUE`` settings."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import operator
+import re
+import types
+import typing
+from typing import Annotated
+
+import tyro
+
+from eabc.training.online import SACTrainConfig
+from eabc.training.trainer import TrainConfig
+
+
+def _parsed_unchecked(config_class: type) -> type:
+    """``config_class`` without its ``__post_init__`` checks, for parsing only.
+
+    tyro reports an error raised while it builds a nested dataclass under the dataclass's internal
+    name (``__tyro-dummy-inner__.config``); checked in :func:`_checked` instead, the message can
+    name the user's flags (``--eval-interval must be a multiple of --log-interval=300``).
+    """
+    namespace = {"__post_init__": lambda self: None, "__doc__": config_class.__doc__}
+    return dataclasses.dataclass(frozen=True)(
+        type(config_class.__name__, (config_class,), namespace)
+    )
+
+
+def _checked(options, config_class: type):
+    """The parsed ``options`` as a checked ``config_class``; field names in errors as flags."""
+    values = {f.name: getattr(options, f.name) for f in dataclasses.fields(config_class)}
+    try:
+        return config_class(**values)
+    except ValueError as error:
+        message = str(error)
+        for name in values:
+            message = re.sub(rf"\b{name}\b", "--" + name.replace("_", "-"), message)
+        raise ValueError(message) from None
+
+
+TrainOptions = _parsed_unchecked(TrainConfig)
+SACTrainOptions = _parsed_unchecked(SACTrainConfig)
+
+
+def _agent_overrides() -> type:
+    """The typed algorithm flags of ``eabc train``, made from the algorithm contracts: every
+    setting some algorithm lists in ``cli_flags``, unset by default (the preset's value)."""
+    from eabc.agents import ALGORITHMS  # noqa: PLC0415
+    from eabc.agents.contract import field_docs  # noqa: PLC0415
+
+    fields, users = {}, {}
+    for algorithm in ALGORITHMS.values():
+        hints = typing.get_type_hints(type(algorithm.preset))
+        docs = field_docs(type(algorithm.preset))
+        for name in algorithm.cli_flags:
+            users.setdefault(name, []).append(
+                f"{algorithm.name}: {getattr(algorithm.preset, name)}"
+            )
+            fields.setdefault(name, (hints[name], docs.get(name, "")))
+    spec = []
+    for name, (hint, doc) in fields.items():
+        args = [a for a in typing.get_args(hint) if a is not type(None)]
+        optional = typing.get_origin(hint) in (typing.Union, types.UnionType)
+        inner = functools.reduce(operator.or_, args) if optional else hint  # noqa: E501
+        where = "; ".join(users[name]).replace(": None", ": Table 3's")
+        help_text = f"{doc} Unset: the preset's ({where})."
+        spec.append((name, Annotated[inner | None, tyro.conf.arg(help=help_text)], None))
+    return dataclasses.make_dataclass(
+        "AgentOverrides",
+        spec,
+        frozen=True,
+        namespace={"__doc__": "Algorithm settings to change from the preset --algo chose."},
+    )
+
+
+AgentOverrides = _agent_overrides()
+
+
+def parse_settings(items: tuple[str, ...]) -> dict:
+    """``KEY=VALUE`` strings as settings; a comma makes a tuple (``hidden_dims=512,512``)."""
+    settings = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise ValueError(f"bad --set {item!r}; use KEY=VALUE")
+        parts = [parse_value(v) for v in value.split(",")]
+        settings[key] = tuple(parts) if "," in value else parts[0]
+    return settings
+
+
+def parse_value(text: str):
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    return {"true": True, "false": False}.get(text.lower(), text)
