@@ -189,8 +189,9 @@ def test_advantage_rule_clones_where_the_policy_takes_the_data_action(batch):
 
 
 def test_advantage_rule_needs_no_confidence_level(batch):
-    config = trainer.resolve_agent_config("eabc", "hopper-medium", {"bc_weight": "advantage"})
-    assert config.confidence_level is None  # nothing to look up, nothing to tune
+    resolved = trainer.resolve_agent_config("eabc", "hopper-medium", {"bc_weight": "advantage"})
+    assert resolved.confidence_level is None  # nothing to look up, nothing to tune
+    config = tiny(bc_weight="advantage")
     state = eabc.init(jax.random.PRNGKey(0), OBS, ACT, config)
     state = state.replace(step=jnp.ones((), jnp.int32))  # the next step updates the actor
     _, metrics = eabc.update(state, batch, jax.random.PRNGKey(0), config, 1.0)

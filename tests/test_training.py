@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 
 import jax
@@ -10,9 +11,9 @@ import numpy as np
 import pytest
 
 from eabc import load_policy
-from eabc.agents import get_algorithm
+from eabc.agents import eabc, get_algorithm
 from eabc.experiments import results
-from eabc.training import checkpoint, health, trainer
+from eabc.training import checkpoint, chunks, health, trainer
 from eabc.training.trainer import TrainConfig
 
 SMALL = dict(
@@ -238,3 +239,22 @@ def test_the_fast_compiled_init_gives_the_default_compiled_parameters_bit_for_bi
     default = jax.jit(lambda k: algorithm.init(k, 11, 3, algorithm.preset))(key)
     for a, b in zip(jax.tree.leaves(fast), jax.tree.leaves(default), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_fast_compiled_chunks_are_another_program_with_the_same_results(monkeypatch, batch):
+    """$EABC_FAST_COMPILE picks chunk programs compiled at XLA O0: another build of the same
+    steps, equal to the default build up to float rounding."""
+    config = dataclasses.replace(
+        get_algorithm("eabc").preset, hidden_dims=(8, 8), num_critics=3, confidence_level=0.5
+    )
+    state = get_algorithm("eabc").init(jax.random.PRNGKey(0), 3, 2, config)
+    update = functools.partial(eabc.update, config=config, max_action=1.0)
+    results = {}
+    for fast in (False, True):
+        monkeypatch.setenv(chunks.FAST_COMPILE_ENV, "1" if fast else "0")
+        assert chunks.fast_compile() is fast
+        before = chunks._PROGRAMS[fast][0]._cache_size()
+        results[fast] = chunks.train_chunk(state, jax.random.PRNGKey(1), batch, update, 4, 6)
+        assert chunks._PROGRAMS[fast][0]._cache_size() == before + 1  # compiled in this build
+    for a, b in zip(jax.tree.leaves(results[False]), jax.tree.leaves(results[True]), strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-5)

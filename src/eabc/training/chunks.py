@@ -9,6 +9,7 @@ benchmarks time them directly.
 from __future__ import annotations
 
 import functools
+import os
 
 import jax
 import jax.numpy as jnp
@@ -30,9 +31,23 @@ def device_data(dataset: Dataset, normalizer: Normalizer) -> Batch:
     )
 
 
-@functools.partial(jax.jit, static_argnames=("update", "batch_size", "length"))
-def train_chunk(agent_state, key, data: Batch, update, batch_size: int, length: int):
-    """``length`` gradient steps in one compiled scan; batches are sampled with replacement inside."""
+FAST_COMPILE_ENV = "EABC_FAST_COMPILE"
+"""Set to 1 to compile the training chunks at XLA's lowest optimisation level: a program compiles
+in about half the time and runs slower, so a run of a few hundred steps starts sooner (the test
+suite's contract checks use it). Results differ from the default build in the last bits."""
+FAST_COMPILE_OPTIONS = {
+    "xla_backend_optimization_level": 0,
+    "xla_llvm_disable_expensive_passes": True,
+}
+_STATIC = ("update", "batch_size", "length")
+
+
+def fast_compile() -> bool:
+    """Whether ``$EABC_FAST_COMPILE`` asks for quickly compiled chunks."""
+    return os.environ.get(FAST_COMPILE_ENV, "").strip().lower() in ("1", "true", "yes", "on")
+
+
+def _chunk(agent_state, key, data: Batch, update, batch_size: int, length: int):
     size = data.rewards.shape[0]
 
     def step(carry, _):
@@ -50,13 +65,36 @@ def train_chunk(agent_state, key, data: Batch, update, batch_size: int, length: 
     return agent_state, key, metrics
 
 
-@functools.partial(jax.jit, static_argnames=("update", "batch_size", "length"))
+def _chunk_seeds(agent_states, keys, data: Batch, update, batch_size: int, length: int):
+    chunk = functools.partial(_chunk, update=update, batch_size=batch_size, length=length)
+    return jax.vmap(chunk, in_axes=(0, 0, None))(agent_states, keys, data)
+
+
+_PROGRAMS = {
+    fast: tuple(
+        jax.jit(
+            f,
+            static_argnames=_STATIC,
+            **({"compiler_options": FAST_COMPILE_OPTIONS} if fast else {}),
+        )
+        for f in (_chunk, _chunk_seeds)
+    )
+    for fast in (False, True)
+}
+
+
+def train_chunk(agent_state, key, data: Batch, update, batch_size: int, length: int):
+    """``length`` gradient steps in one compiled scan; batches are sampled with replacement inside.
+    ``update`` is hashable (e.g. a ``functools.partial`` of an algorithm's update); one program is
+    compiled per update, batch size and length."""
+    program = _PROGRAMS[fast_compile()][0]
+    return program(agent_state, key, data, update=update, batch_size=batch_size, length=length)
+
+
 def train_chunk_seeds(agent_states, keys, data: Batch, update, batch_size: int, length: int):
     """:func:`train_chunk` for a stack of seeds (leading axis of states and keys), one program."""
-    chunk = functools.partial(
-        train_chunk.__wrapped__, update=update, batch_size=batch_size, length=length
-    )
-    return jax.vmap(chunk, in_axes=(0, 0, None))(agent_states, keys, data)
+    program = _PROGRAMS[fast_compile()][1]
+    return program(agent_states, keys, data, update=update, batch_size=batch_size, length=length)
 
 
 def summarize_metrics(
