@@ -18,6 +18,10 @@ authors' code (aviralkumar2907/BEAR, ``algos.py``, class ``BEAR``):
 
 UWAC (:mod:`eabc.agents.uwac`) is this rule with MC-dropout critics: it passes its own critic
 evaluation (:class:`Critics`) to :func:`step`.
+
+Why one file of about 400 lines: the VAE, the MMD kernels and the five losses are the steps of one
+update in the authors' order, each checked against the official code; UWAC reuses them through
+:func:`step`, so they stay together rather than spread over modules that only this rule uses.
 """
 
 from __future__ import annotations

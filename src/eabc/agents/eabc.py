@@ -29,6 +29,10 @@ variants of issue 14, each a switch of this one rule:
   ``pess(Q(s, a)) >= pess(Q(s, pi(s)))`` (CRR's binary advantage filter, Wang et al. 2020, with
   the actor's own pessimistic value): the policy is pulled toward the data only where the data does
   better, and left to the critics where they say it does better already.
+
+Why one file of about 500 lines: issue 14 asks for every variant as a setting of the one rule, so
+the rule, its settings (with the docstrings the CLI and the contract tests read) and the BC-weight
+rules it switches between live together, and a variant is read in one place.
 """
 
 from __future__ import annotations

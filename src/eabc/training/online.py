@@ -10,6 +10,9 @@ step, random states, episode history), ``replay.npz`` (the replay buffer), ``log
 and evaluation returns), and ``snapshots/`` with the actor every ``snapshot_interval`` steps: the
 sequence the medium-replay datasets are rebuilt from. Resuming restores everything except the
 episode that was in progress, which restarts.
+
+Why one file of about 350 lines: the environment loop, the replay buffer, snapshots and the resume
+path share one run state; each piece is small and only this trainer uses it.
 """
 
 from __future__ import annotations
