@@ -3,6 +3,14 @@
 Agarwal et al., 2021, "Deep RL at the edge of the statistical precipice" (the ``rliable`` library):
 the interquartile mean, stratified-bootstrap confidence intervals and performance profiles.
 
+Why not ``rliable`` itself (checked 2026-12-02 with its latest release, 1.2.0): it needs
+``arch < 8``, and arch 7.2 does not import under pandas 3 (``deprecate_kwarg()`` TypeError), while
+arch 8 breaks rliable's bootstrap (``random_state=None`` refused); it would also bring seaborn and
+absl, and it takes one score matrix of equal runs per task, where a sweep stopped early has ragged
+tasks. The methods here are rliable's, on the same definitions (``tests/test_stats.py`` checks the
+IQM against SciPy's trimmed mean, the profile against a hand computation, and that the bootstrap
+resamples runs within each task).
+
 A *score matrix* is either a 2-D array ``[runs_per_task, tasks]`` or a list of 1-D arrays, one per
 task, which allows tasks with different numbers of seeds.
 """
