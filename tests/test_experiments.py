@@ -104,9 +104,9 @@ def two_datasets(tmp_path, pendulum_dataset):
 
 def test_local_sweep_is_interrupted_resumed_and_stored(tmp_path, two_datasets):
     root = tmp_path / "sweep"
-    spec = _spec(two_datasets, steps=400)
+    spec = _spec(two_datasets, steps=400, seeds=[0])
     runs = expand(spec)
-    assert len(runs) == 8
+    assert len(runs) == 4
     root.mkdir()
     (root / "spec.yaml").write_text(yaml.safe_dump(spec))
     # Start the sweep, kill it as soon as some run has a checkpoint but not all are done.
@@ -130,7 +130,7 @@ def test_local_sweep_is_interrupted_resumed_and_stored(tmp_path, two_datasets):
     subprocess.run(_cli(two_datasets, root), check=True)
     assert [sweep.status(r, root)[0] for r in runs] == ["done"] * len(runs)
     table, evaluations = results.collect(root)
-    assert len(table) == 8 and set(table["status"]) == {"done"}
+    assert len(table) == 4 and set(table["status"]) == {"done"}
     for run in interrupted:  # resumed, not restarted: one log row per step
         steps = evaluations[evaluations.run_id == f"runs/{run.run_id}"]["step"].tolist()
         assert steps == [100, 200, 300, 400], steps
@@ -144,7 +144,7 @@ def test_local_sweep_is_interrupted_resumed_and_stored(tmp_path, two_datasets):
         stored = row["q_out_of_range_step"]
         assert pd.isna(stored) if diverged is None else stored == diverged
     again, _ = results.load(root)
-    assert len(again) == 8
+    assert len(again) == 4
     (root / results.DATABASE).unlink()
     rebuilt, _ = results.load(root)
     assert sorted(rebuilt.run_id) == sorted(table.run_id)
@@ -162,11 +162,11 @@ def test_local_sweep_is_interrupted_resumed_and_stored(tmp_path, two_datasets):
     assert f"{bc_scores.mean():.1f}" in markdown
 
 
-def _spec(datasets, steps):
+def _spec(datasets, steps, seeds=(0, 1)):
     return {
         "datasets": datasets,
         "algos": ["eabc", "bc"],
-        "seeds": [0, 1],
+        "seeds": list(seeds),
         "steps": steps,
         "grid": {"confidence_level": [0.5], "hidden_dims": [[32, 32]]},
         "train": {k: v for k, v in SMALL.items() if k != "steps"},
