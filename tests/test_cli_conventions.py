@@ -3,6 +3,8 @@ name the command, readable metavars, errors that name the user's flag, one-line 
 
 from __future__ import annotations
 
+import os
+import subprocess
 import sys
 
 import pytest
@@ -75,3 +77,16 @@ def test_a_missing_extra_is_one_line_that_names_it(monkeypatch, pendulum_dataset
         sweep.run_ray([], "root")
     with pytest.raises(DatasetError, match=r"pip install 'eabc\[minari\]'"):
         export_minari(pendulum_dataset, "test/pendulum/x-v0")
+
+
+def test_help_piped_into_a_reader_that_stops_early_ends_without_a_traceback():
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "eabc.cli", "sweep", "--help"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        env={**os.environ, "COLUMNS": "80"},
+    )
+    assert proc.stdout.readline().startswith(b"usage: eabc sweep")
+    proc.stdout.close()  # as `| head -1` does
+    _, err = proc.communicate(timeout=60)
+    assert b"Traceback" not in err and b"BrokenPipe" not in err, err.decode()[-500:]

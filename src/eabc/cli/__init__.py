@@ -8,6 +8,7 @@ One module per group of commands: :mod:`~eabc.cli.train` (train, evaluate, sac, 
 from __future__ import annotations
 
 import dataclasses
+import os
 import sys
 
 import tyro
@@ -55,6 +56,17 @@ __all__ = [
 
 
 def main(argv: list[str] | None = None) -> None:
+    """The ``eabc`` command; output piped into a reader that stops early (``eabc --help | head``)
+    ends it quietly."""
+    try:
+        _main(argv)
+    except BrokenPipeError:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())  # Python's advice: no second error at exit
+        sys.exit(1)
+
+
+def _main(argv: list[str] | None) -> None:
     argv = sys.argv[1:] if argv is None else list(argv)
     commands: dict[str, type] = {
         "train": Train,
