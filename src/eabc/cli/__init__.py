@@ -55,6 +55,21 @@ __all__ = [
 ]  # fmt: skip
 
 
+def _export_policy(cmd: ExportPolicy) -> None:
+    from eabc import deploy  # noqa: PLC0415
+
+    print(deploy.export_onnx(cmd.run_dir, cmd.onnx))
+
+
+HANDLERS = {
+    Train: run_train, Evaluate: run_evaluate, Sac: run_sac, Sweep: run_sweep,
+    Results: run_results, Report: run_report, ExportPolicy: _export_policy,
+    ZooBuild: run_zoo, ZooPack: run_zoo,
+    DataMake: run_data, DataInfo: run_data, DataList: run_data, DataExport: run_data,
+}  # fmt: skip
+"""Each command's function, by the command's parsed dataclass."""
+
+
 def main(argv: list[str] | None = None) -> None:
     """The ``eabc`` command; output piped into a reader that stops early (``eabc --help | head``)
     ends it quietly."""
@@ -112,28 +127,8 @@ def _main(argv: list[str] | None) -> None:
     options = getattr(cmd, "config", cmd)
     compile_cache.enable(cache_root=getattr(options, "cache_dir", None))
     try:
-        if isinstance(cmd, Train):
-            run_train(cmd)
-        elif isinstance(cmd, Evaluate):
-            run_evaluate(cmd)
-        elif isinstance(cmd, Sac):
-            run_sac(cmd)
-        elif isinstance(cmd, Sweep):
-            run_sweep(cmd)
-        elif isinstance(cmd, Results):
-            run_results(cmd)
-        elif isinstance(cmd, Report):
-            run_report(cmd)
-        elif isinstance(cmd, ExportPolicy):
-            from eabc import deploy  # noqa: PLC0415
-
-            print(deploy.export_onnx(cmd.run_dir, cmd.onnx))
-        elif isinstance(cmd, ZooBuild | ZooPack):
-            run_zoo(cmd)
-        else:
-            run_data(cmd)
+        HANDLERS[type(cmd)](cmd)
     except (ValueError, FileNotFoundError, FileExistsError, RuntimeError) as error:
         sys.exit(f"error: {error}")
     except OSError as error:  # e.g. a directory where a file should be, no permission
         sys.exit(f"error: {error.filename or ''}: {error.strerror or error}; check that path")
-
