@@ -79,14 +79,16 @@ def test_a_missing_extra_is_one_line_that_names_it(monkeypatch, pendulum_dataset
         export_minari(pendulum_dataset, "test/pendulum/x-v0")
 
 
-def test_help_piped_into_a_reader_that_stops_early_ends_without_a_traceback():
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "eabc.cli", "sweep", "--help"],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        env={**os.environ, "COLUMNS": "80"},
-    )
-    assert proc.stdout.readline().startswith(b"usage: eabc sweep")
-    proc.stdout.close()  # as `| head -1` does
-    _, err = proc.communicate(timeout=60)
-    assert b"Traceback" not in err and b"BrokenPipe" not in err, err.decode()[-500:]
+def test_output_piped_into_a_reader_that_stops_early_ends_quietly(tmp_path):
+    """`eabc sweep --help | head -1`, `eabc data list | head -1`: no traceback, no error line."""
+    for args in (["sweep", "--help"], ["data", "list", "--cache-dir", str(tmp_path)]):
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "eabc.cli", *args],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            env={**os.environ, "COLUMNS": "80"},
+        )
+        assert proc.stdout.readline().startswith((b"usage: eabc sweep", b"dataset")), args
+        proc.stdout.close()  # as `| head -1` does
+        _, err = proc.communicate(timeout=60)
+        assert not err.strip(), (args, err.decode()[-500:])

@@ -130,5 +130,7 @@ def _main(argv: list[str] | None) -> None:
         HANDLERS[type(cmd)](cmd)
     except (ValueError, FileNotFoundError, FileExistsError, RuntimeError) as error:
         sys.exit(f"error: {error}")
+    except BrokenPipeError:  # the reader stopped early: main ends quietly
+        raise
     except OSError as error:  # e.g. a directory where a file should be, no permission
         sys.exit(f"error: {error.filename or ''}: {error.strerror or error}; check that path")
