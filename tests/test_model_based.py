@@ -12,6 +12,7 @@ from handcalc import ACT, OBS, B, member
 
 from eabc.agents import dynamics, get_algorithm, mopo, morel
 from eabc.training import chunks, trainer
+from eabc.training.chunks import FAST_COMPILE_OPTIONS
 
 SMALL = {"model_members": 3, "model_elites": 2, "model_hidden_dims": (8, 8), "hidden_dims": (8, 8)}
 
@@ -167,7 +168,7 @@ def test_update_refills_every_interval_and_mixes_real_data(batch):
         **SMALL, rollout_length=2, rollout_interval=2, real_ratio=0.3, termination="none"
     )
     state = model_state(config)
-    update = jax.jit(mopo.update, static_argnums=(3, 4))
+    update = jax.jit(mopo.update, static_argnums=(3, 4), compiler_options=FAST_COMPILE_OPTIONS)
     counts = []
     for i in range(4):
         state, metrics = update(state, batch, jax.random.PRNGKey(i), config, 1.0)
