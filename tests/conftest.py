@@ -26,25 +26,6 @@ def pytest_configure(config):
     compile_cache.enable(config.xla_cache)
 
 
-# Seconds each file took in a full run (`pytest --durations=0`, 2026-12-02, AVX2 2-core host under
-# load; only the order matters). xdist hands out whole files (--dist loadfile) in collection order
-# (--no-loadscope-reorder), so the longest go first and the short ones fill the end: the two
-# workers finish together instead of one running a long file alone at the end.
-FILE_SECONDS = {
-    "test_contract_more.py": 510, "test_bear_uwac.py": 440, "test_contract.py": 310,
-    "test_sac.py": 250, "test_iql_cql.py": 250, "test_experiments.py": 240,
-    "test_eabc_variants.py": 170, "test_faults.py": 140, "test_training.py": 140,
-    "test_model_based.py": 130, "test_zoo.py": 120, "test_benchmarks.py": 110, "test_cli.py": 100,
-    "test_bc_wpc.py": 65, "test_eabc_update.py": 45, "test_report.py": 25, "test_pytree.py": 20,
-    "test_data.py": 16,
-}  # fmt: skip
-
-
-def pytest_collection_modifyitems(config, items):
-    """Longest files first (see FILE_SECONDS); a file's own tests keep their order."""
-    items.sort(key=lambda item: -FILE_SECONDS.get(item.path.name, 0))
-
-
 def pytest_unconfigure(config):
     shutil.rmtree(getattr(config, "xla_cache", ""), ignore_errors=True)
 
