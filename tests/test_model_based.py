@@ -183,6 +183,18 @@ def test_per_task_settings_are_resolved_from_the_dataset_name():
     assert (config.rollout_length, config.penalty_coeff, config.termination) == (5, 5.0, "hopper")
     config = trainer.resolve_agent_config("mopo", "halfcheetah-medium", {"penalty_coeff": 0.3})
     assert (config.rollout_length, config.penalty_coeff, config.termination) == (1, 0.3, "none")
+    # The official configs' (h, lambda) per task, read from tianheyu927/mopo's
+    # examples/config/d4rl/*.py at commit 3d632fc, written out here by hand.
+    official = {
+        "halfcheetah-random": (5, 0.5), "halfcheetah-medium": (1, 1.0),
+        "halfcheetah-medium-replay": (5, 1.0), "halfcheetah-medium-expert": (5, 5.0),
+        "hopper-random": (5, 1.0), "hopper-medium": (5, 5.0), "hopper-medium-replay": (5, 1.0),
+        "hopper-medium-expert": (5, 1.0), "walker2d-random": (1, 1.0), "walker2d-medium": (5, 5.0),
+        "walker2d-medium-replay": (1, 1.0), "walker2d-medium-expert": (1, 2.0),
+    }  # fmt: skip
+    for name, expected in official.items():
+        config = trainer.resolve_agent_config("mopo", name, {})
+        assert (config.rollout_length, config.penalty_coeff) == expected, name
     config = trainer.resolve_agent_config("morel", "walker2d-medium", {})
     assert (config.rollout_length, config.penalty_coeff, config.termination) == (5, 0.0, "walker2d")
     assert get_algorithm("mopo").gaussian_actor and get_algorithm("morel").gaussian_actor

@@ -126,14 +126,13 @@ class MOPOConfig:
 PRESETS: dict[str, MOPOConfig] = {"mopo": MOPOConfig()}
 
 TASK_SETTINGS: dict[tuple[str, str], dict[str, float]] = {
-    # examples/config/d4rl/<env>_<kind>.py: rollout_length and penalty_coeff ("mixed" is D4RL's
-    # medium-replay). Checked against the files: hopper-medium, halfcheetah-medium and
-    # walker2d-medium-expert; the other nine are from the MOPO paper's hyperparameter table as
-    # remembered, NOT yet checked against the config files.
+    # examples/config/d4rl/<env>_<kind>.py of tianheyu927/mopo: rollout_length and penalty_coeff
+    # ("mixed" is D4RL's medium-replay). All twelve checked against the files at commit 3d632fc
+    # (2026-12-02; halfcheetah-medium-expert's penalty is 5.0 there, 1.0 here before).
     ("halfcheetah", "random"): {"rollout_length": 5, "penalty_coeff": 0.5},
     ("halfcheetah", "medium"): {"rollout_length": 1, "penalty_coeff": 1.0},
     ("halfcheetah", "medium-replay"): {"rollout_length": 5, "penalty_coeff": 1.0},
-    ("halfcheetah", "medium-expert"): {"rollout_length": 5, "penalty_coeff": 1.0},
+    ("halfcheetah", "medium-expert"): {"rollout_length": 5, "penalty_coeff": 5.0},
     ("hopper", "random"): {"rollout_length": 5, "penalty_coeff": 1.0},
     ("hopper", "medium"): {"rollout_length": 5, "penalty_coeff": 5.0},
     ("hopper", "medium-replay"): {"rollout_length": 5, "penalty_coeff": 1.0},
