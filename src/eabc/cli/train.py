@@ -79,19 +79,24 @@ def sac_agent_config(cmd: Sac):
     return agent
 
 
+def _start_or_resume_then_train(cmd, resume, start, train) -> dict:
+    """``--resume DIR`` or a new run, trained to its end; the summary printed as JSON."""
+    run = resume(cmd.resume) if cmd.resume else start()
+    print(f"run directory: {run.run_dir}", file=sys.stderr)
+    summary = train(run, progress=cmd.progress)
+    print(json.dumps(summary, indent=2))
+    return summary
+
+
 def run_sac(cmd: Sac) -> dict:
     from eabc.training import online  # noqa: PLC0415
 
-    if cmd.resume:
-        run = online.resume_sac(cmd.resume)
-    else:
+    def start():
         config = cmd.config
         run_dir = cmd.run_dir or f"runs/sac_{config.env}_seed{config.seed}"
-        run = online.start_sac(config, run_dir, sac_agent_config(cmd))
-    print(f"run directory: {run.run_dir}", file=sys.stderr)
-    summary = online.train_sac(run, progress=cmd.progress)
-    print(json.dumps(summary, indent=2))
-    return summary
+        return online.start_sac(config, run_dir, sac_agent_config(cmd))
+
+    return _start_or_resume_then_train(cmd, online.resume_sac, start, online.train_sac)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -107,16 +112,13 @@ class ExportPolicy:
 def run_train(cmd: Train) -> dict:
     from eabc.training import trainer  # noqa: PLC0415
 
-    if cmd.resume:
-        run = trainer.resume(cmd.resume)
-    else:
+    def start():
         config = cmd.config
         run_dir = cmd.run_dir or f"runs/{Path(config.dataset).stem}_{config.algo}_seed{config.seed}"
         overrides = dataclasses.asdict(cmd.agent) | parse_settings(cmd.set)
-        run = trainer.start(config, run_dir, overrides)
-    print(f"run directory: {run.run_dir}", file=sys.stderr)
-    summary = trainer.train(run, progress=cmd.progress)
-    print(json.dumps(summary, indent=2))
+        return trainer.start(config, run_dir, overrides)
+
+    summary = _start_or_resume_then_train(cmd, trainer.resume, start, trainer.train)
     if summary.get("diverged_step") is not None:
         raise RuntimeError(f"training stopped at step {summary['diverged_step']} on NaN/inf")
     return summary
