@@ -271,6 +271,62 @@ def test_calibrated_auto_p_in_a_training_step_starts_and_stays_at_one_while_cali
     )
 
 
+def _distance_signals(distance, policy_std=1.0):
+    return {**_signals(policy_std, 1.0), "action_distance": jnp.asarray(distance)}
+
+
+def test_distance_auto_p_calibrates_on_the_second_half_then_keeps_a_trust_region(batch):
+    """auto_signal distance: p held during the calibration while the policy's distance from the
+    data's actions is averaged over its second half; then the target is auto_distance_ratio x
+    that mean, p falls inside it and rises outside it, whatever the spread ratio says."""
+    config = tiny(
+        bc_weight="auto",
+        auto_signal="distance",
+        auto_rate=0.01,
+        auto_calibration_steps=8,
+        auto_distance_ratio=2.0,
+    )
+    controller = {
+        **_controller(p=1.0),
+        "distance_sum": jnp.zeros(()),
+        "distance_count": jnp.zeros(()),
+    }
+    # Steps 2 and 4 (first half: the fit is still settling) do not count; 6 and 8 do.
+    for step, distance in zip((2, 4, 6, 8), (5.0, 3.0, 0.12, 0.08)):
+        controller, m = eabc.adapt_confidence_level(
+            controller, batch, _distance_signals(distance), config, jnp.asarray(step)
+        )
+        np.testing.assert_allclose(controller["p"], 1.0)
+    np.testing.assert_allclose(controller["distance_count"], 2.0)
+    np.testing.assert_allclose(m["distance_target"], 2.0 * 0.1, rtol=1e-4)
+    at = {**controller, "p": jnp.asarray(0.5)}
+    held, _ = eabc.adapt_confidence_level(at, batch, _distance_signals(0.2), config, 10)
+    np.testing.assert_allclose(held["p"], 0.5, rtol=1e-4)
+    # Inside the region p falls even where the spread ratio is high (the signal is the distance).
+    fall, _ = eabc.adapt_confidence_level(at, batch, _distance_signals(0.1, 5.0), config, 10)
+    np.testing.assert_allclose(fall["p"], 0.5 - 0.01 * np.log(2.0), rtol=1e-4)
+    rise, _ = eabc.adapt_confidence_level(at, batch, _distance_signals(0.4, 0.1), config, 10)
+    np.testing.assert_allclose(rise["p"], 0.5 + 0.01 * np.log(2.0), rtol=1e-4)
+    far, _ = eabc.adapt_confidence_level(at, batch, _distance_signals(1e3), config, 10)
+    np.testing.assert_allclose(far["p"], 0.51, rtol=1e-5)  # the error is clipped at 1
+
+
+def test_distance_auto_p_in_a_training_step_measures_the_policy_against_the_data(batch):
+    config = tiny(bc_weight="auto", auto_signal="distance", auto_calibration_steps=4)
+    state = eabc.init(jax.random.PRNGKey(0), 3, 2, config)
+    assert set(state.controller) >= {"distance_sum", "distance_count"}
+    assert "ratio_sum" not in state.controller
+    state = state.replace(step=jnp.ones((), jnp.int32))  # the next step updates the actor
+    pi = np.tanh(np_mlp(state.actor, np.asarray(batch.observations, np.float64)))
+    expected = ((pi - np.asarray(batch.actions, np.float64)) ** 2).mean()
+    _, metrics = eabc.update(state, batch, jax.random.PRNGKey(0), config, 1.0)
+    np.testing.assert_allclose(metrics["action_distance"], expected, rtol=1e-4)
+    with pytest.raises(ValueError, match="auto_calibration_steps"):
+        tiny(bc_weight="auto", auto_signal="distance")
+    with pytest.raises(ValueError, match="auto_signal"):
+        tiny(bc_weight="auto", auto_signal="returns")
+
+
 def test_auto_p_stays_within_its_bounds(batch):
     config = tiny(bc_weight="auto", auto_rate=0.3, auto_min_p=0.2)
     controller = _controller(p=0.5)

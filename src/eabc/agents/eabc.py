@@ -54,6 +54,7 @@ from eabc.data import tasks
 
 Pessimism = Literal["mean-std", "min", "min2"]
 BCWeight = Literal["bernoulli", "quantile", "auto", "advantage"]
+AutoSignal = Literal["spread", "distance"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -120,6 +121,14 @@ class EABCConfig:
     times that average (the ratio as a relative signal: p falls only while the policy's actions
     stay as sure, relative to the data's, as cloning keeps them). 0: the target is
     auto_spread_ratio itself."""
+    auto_signal: AutoSignal = "spread"
+    """auto: what p follows. spread: the spread ratio above. distance: the policy's squared
+    distance from the data's actions, mean (pi(s) - a)^2 / max_action^2, against
+    auto_distance_ratio times its mean over the second half of the calibration (a trust region
+    relative to what cloning alone reaches on this data; needs auto_calibration_steps > 0)."""
+    auto_distance_ratio: float = 2.0
+    """auto, signal distance: how far, relative to full cloning's fit, the policy may move from
+    the data's actions before p rises."""
 
     def __post_init__(self):
         if self.num_critics < 2:
@@ -149,6 +158,19 @@ class EABCConfig:
             raise ValueError(
                 f"auto_calibration_steps must be >= 0, got {self.auto_calibration_steps}"
             )
+        if self.auto_signal not in ("spread", "distance"):
+            raise ValueError(f"auto_signal must be spread or distance, got {self.auto_signal!r}")
+        if self.auto_distance_ratio <= 0:
+            raise ValueError(f"auto_distance_ratio must be > 0, got {self.auto_distance_ratio}")
+        if (
+            self.bc_weight == "auto"
+            and self.auto_signal == "distance"
+            and self.auto_calibration_steps < 2
+        ):
+            raise ValueError(
+                "auto_signal distance measures full cloning's fit first: set "
+                "auto_calibration_steps (e.g. 5000)"
+            )
 
 
 PRESETS: dict[str, EABCConfig] = {
@@ -174,6 +196,17 @@ PRESETS: dict[str, EABCConfig] = {
     # fall to 0.1 on hopper-medium and the score with it; see adapt_confidence_level).
     "eabc-robust": EABCConfig(
         bc_weight="auto", critic_layer_norm=True, auto_calibration_steps=5000, auto_rate=1e-2
+    ),
+    # Automatic p as a trust region: p follows the policy's distance from the data's actions,
+    # kept within twice what full cloning leaves over the first 5,000 steps, on LayerNorm critics
+    # (every spread-ratio controller on hopper-medium kept the critics sound and still let the
+    # policy drift; the distance sees the drift itself).
+    "eabc-trust": EABCConfig(
+        bc_weight="auto",
+        critic_layer_norm=True,
+        auto_signal="distance",
+        auto_calibration_steps=5000,
+        auto_rate=1e-2,
     ),
 }
 
@@ -214,8 +247,9 @@ def init(key: jax.Array, obs_dim: int, act_dim: int, config: EABCConfig) -> EABC
             "reward_max": jnp.asarray(-jnp.inf, jnp.float32),
         }
         if config.auto_calibration_steps:  # the calibration's running sum and count
-            controller["ratio_sum"] = jnp.zeros((), jnp.float32)
-            controller["ratio_count"] = jnp.zeros((), jnp.float32)
+            name = "ratio" if config.auto_signal == "spread" else "distance"
+            controller[f"{name}_sum"] = jnp.zeros((), jnp.float32)
+            controller[f"{name}_count"] = jnp.zeros((), jnp.float32)
     return EABCState(
         actor=actor,
         critic=critic,
@@ -292,9 +326,10 @@ def actor_loss(actor, critic, batch: Batch, key, config, max_action, keep=None, 
             )
         keep = jax.random.bernoulli(mask_key, p, value.shape)
     keep = keep.astype(pi.dtype)
-    bc = (keep * ((pi - batch.actions) ** 2).mean(axis=-1)).mean()
+    squared = ((pi - batch.actions) ** 2).mean(axis=-1)
+    bc = (keep * squared).mean()
     loss = -lam * value.mean() + bc
-    return loss, {
+    metrics = {
         "actor_loss": loss,
         "actor_value": value.mean(),
         "actor_q_mean": q.mean(),
@@ -304,6 +339,9 @@ def actor_loss(actor, critic, batch: Batch, key, config, max_action, keep=None, 
         "bc_loss": bc,
         "bc_fraction": keep.mean(),
     }
+    if config.bc_weight == "auto" and config.auto_signal == "distance":
+        metrics["action_distance"] = jax.lax.stop_gradient(squared.mean()) / max_action**2
+    return loss, metrics
 
 
 def quantile_keep(critic, batch: Batch, config: EABCConfig) -> jax.Array:
@@ -333,26 +371,35 @@ def advantage_keep(critic, batch: Batch, policy_value, key, config: EABCConfig) 
 def adapt_confidence_level(controller, batch: Batch, metrics, config: EABCConfig, step=None):
     """One step of bc_weight auto's controller for p, after an actor step.
 
-    Signals, all offline (from the batch and the critics, never from evaluation returns):
+    Signals, all offline (from the batch and the networks, never from evaluation returns):
 
-    - the spread ratio ``rho = std_K Q(s, pi(s)) / std_K Q(s, a)`` (batch means, online critics):
-      above 1 the policy acts where the ensemble is less sure than at the data's own actions;
+    - ``auto_signal = spread``: the spread ratio ``x = rho = std_K Q(s, pi(s)) / std_K Q(s, a)``
+      (batch means, online critics): above 1 the policy acts where the ensemble is less sure than
+      at the data's own actions;
+    - ``auto_signal = distance``: the policy's squared distance from the data's actions,
+      ``x = delta = mean (pi(s) - a)^2 / max_action^2`` (before this step's actor update): how far
+      the policy has moved from the behaviour it would clone;
     - the value bounds ``V_hi = max(0, max r) / (1 - gamma)`` and ``V_lo = min(0, min r) /
       (1 - gamma)`` over the rewards seen so far: no policy's value can lie outside them.
 
-    Rule: ``p <- clip(p + rate * clip(log(rho / target), -1, 1), auto_min_p, 1)``;
+    Rule: ``p <- clip(p + rate * clip(log(x / target), -1, 1), auto_min_p, 1)``;
     and ``p <- 1`` at once when the mean value at the data's or the policy's actions passes
     ``auto_value_margin * V_hi`` or falls below ``V_lo - 0.1 (V_hi - V_lo)``, or is not finite
     (the critics are extrapolating: clone fully until they come back). So p falls while the
-    ensemble says the policy stays where it is sure, and rises as soon as the policy leaves the
-    data's support or the values leave what the rewards allow.
+    signal stays under its target and rises as soon as it passes it.
 
-    The target is ``auto_spread_ratio``; with ``auto_calibration_steps = N > 0`` it is
+    Targets. spread: ``auto_spread_ratio``; with ``auto_calibration_steps = N > 0`` it is
     ``auto_spread_ratio * mean(rho over the actor steps before gradient step N)``, p held at
     ``auto_initial_p`` meanwhile (the guard still acts). Why: on our hopper-medium rho sits at
     0.93-0.95 under full cloning, with or without LayerNorm critics, so a target of 1 lowered p
     steadily to about 0.1, where the critics stayed in range but the score fell from 94 to 18-27.
-    ``step`` is the gradient step just taken (needed only when calibrating).
+    distance (N required): ``auto_distance_ratio * mean(delta over the actor steps in (N/2, N])``,
+    i.e. a trust region around the data's actions whose radius is measured, not chosen: twice (by
+    default) the error that cloning alone leaves on this data, so a dataset of noisy or mixed
+    behaviour (random, replay) gives the policy more room than one of a single steady policy.
+    Why: every spread-ratio run on hopper-medium kept its critics in range and still lost its
+    score as p fell (the ensemble cannot see the policy drifting where its members agree); the
+    distance sees the drift itself. ``step`` is the gradient step just taken (for calibrating).
     """
     low = jnp.minimum(controller["reward_min"], batch.rewards.min())
     high = jnp.maximum(controller["reward_max"], batch.rewards.max())
@@ -362,15 +409,21 @@ def adapt_confidence_level(controller, batch: Batch, metrics, config: EABCConfig
     floor = bottom - 0.1 * (top - bottom)  # the divergence flag's own lower edge
     tiny = 1e-6
     ratio = (metrics["policy_q_std"] + tiny) / (metrics["q_ensemble_std"] + tiny)
-    target = jnp.asarray(config.auto_spread_ratio, jnp.float32)
+    if config.auto_signal == "distance":
+        name, signal, first = "distance", metrics["action_distance"] + tiny, 0.5
+        target = jnp.asarray(config.auto_distance_ratio, jnp.float32)
+    else:
+        name, signal, first = "ratio", ratio, 0.0
+        target = jnp.asarray(config.auto_spread_ratio, jnp.float32)
     calibration = {}
     if config.auto_calibration_steps:
         calibrating = step <= config.auto_calibration_steps
-        total = controller["ratio_sum"] + jnp.where(calibrating, ratio, 0.0)
-        count = controller["ratio_count"] + jnp.where(calibrating, 1.0, 0.0)
-        calibration = {"ratio_sum": total, "ratio_count": count}
+        counted = calibrating & (step > first * config.auto_calibration_steps)
+        total = controller[f"{name}_sum"] + jnp.where(counted, signal, 0.0)
+        count = controller[f"{name}_count"] + jnp.where(counted, 1.0, 0.0)
+        calibration = {f"{name}_sum": total, f"{name}_count": count}
         target = target * total / jnp.maximum(count, 1.0)
-    error = jnp.clip(jnp.log(ratio / target), -1.0, 1.0)
+    error = jnp.clip(jnp.log(signal / jnp.maximum(target, tiny)), -1.0, 1.0)
     p = jnp.clip(controller["p"] + config.auto_rate * error, config.auto_min_p, 1.0)
     if config.auto_calibration_steps:
         p = jnp.where(calibrating, controller["p"], p)
@@ -379,7 +432,7 @@ def adapt_confidence_level(controller, batch: Batch, metrics, config: EABCConfig
     p = jnp.where(out_of_range, 1.0, p)
     metrics = {"auto_p": p, "spread_ratio": ratio, "value_ceiling": ceiling}
     if config.auto_calibration_steps:
-        metrics["spread_target"] = target
+        metrics["spread_target" if name == "ratio" else "distance_target"] = target
     return {"p": p, "reward_min": low, "reward_max": high, **calibration}, metrics
 
 
@@ -516,6 +569,7 @@ ALGORITHMS = (
             ("eabc-quantile", "EABC-quantile", 14),
             ("eabc-auto", "EABC-auto", 15),
             ("eabc-robust", "EABC-robust", 16),
+            ("eabc-trust", "EABC-trust", 17),
         )
     ),
 )  # fmt: skip

@@ -22,6 +22,9 @@ SCREEN_VARIANTS = [  # in order of priority: a screen stopped early has run the 
     # Full cloning on LayerNorm critics: on hopper-medium every LayerNorm run scored best while its
     # p was still near 1 (94 at 10K steps, 79 at 20K) and lost it as p fell.
     {"algo": "eabc", "confidence_level": 1.0, "critic_layer_norm": True},
+    # Auto p as a trust region: the policy's distance from the data's actions within twice what
+    # cloning leaves (the spread ratio kept critics sound but let hopper-medium's policy drift).
+    {"algo": "eabc-trust"},
     {"algo": "eabc-robust"},  # auto p with a calibrated target, on LayerNorm critics
     {"algo": "eabc", "confidence_level": 1.0},
     {"algo": "eabc", "critic_layer_norm": True},
