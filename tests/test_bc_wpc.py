@@ -25,9 +25,10 @@ def test_bc_loss_and_step_match_hand_computation(batch):
 def test_wpc_value_loss_and_advantage_mask_match_hand_computation(batch):
     config = wpc.WPCConfig(hidden_dims=(8, 8))
     state = wpc.init(jax.random.PRNGKey(0), OBS, ACT, config)
+    td3bc = state.td3bc  # TD3+BC's networks, which wPC's state holds
     obs, act = np.asarray(batch.observations), np.asarray(batch.actions)
-    loss, (advantage, _) = wpc.value_loss(state.value, state.critic_target, batch)
-    target = np_q(state.critic_target, 2, obs, act).min(0)
+    loss, (advantage, _) = wpc.value_loss(state.value, td3bc.critic_target, batch)
+    target = np_q(td3bc.critic_target, 2, obs, act).min(0)
     v = np_mlp(state.value, obs)[:, 0]
     np.testing.assert_allclose(loss, ((v - target) ** 2).mean(), rtol=1e-5)
     np.testing.assert_allclose(advantage, target - v, rtol=1e-5, atol=1e-6)
@@ -36,10 +37,10 @@ def test_wpc_value_loss_and_advantage_mask_match_hand_computation(batch):
 
     # The actor's BC term is kept exactly where the advantage is positive.
     actor_loss, metrics = eabc.actor_loss(
-        state.actor, state.critic, batch, jax.random.PRNGKey(3), config, 1.0, keep=advantage > 0
+        state.actor, td3bc.critic, batch, jax.random.PRNGKey(3), config, 1.0, keep=advantage > 0
     )
     pi = np.tanh(np_mlp(state.actor, obs))
-    q1 = np_q(state.critic, 1, obs, pi)[0]
+    q1 = np_q(td3bc.critic, 1, obs, pi)[0]
     lam = 2.5 / np.abs(q1).mean()
     expected = -lam * q1.mean() + (keep * ((pi - act) ** 2).mean(-1)).mean()
     np.testing.assert_allclose(actor_loss, expected, rtol=1e-4)

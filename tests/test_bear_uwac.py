@@ -251,13 +251,13 @@ def test_dropout_critic_drops_hidden_units_and_rescales(batch):
     config = uwac.UWACConfig(**SMALL, dropout_rate=0.4)
     state = uwac.init(jax.random.PRNGKey(0), OBS, ACT, config)
     key = jax.random.PRNGKey(2)
-    got = uwac.dropout_critic_apply(state.critic, batch.observations, batch.actions, key, 0.4)
+    got = uwac.dropout_critic_apply(state.bear.critic, batch.observations, batch.actions, key, 0.4)
     s, a = as64(batch.observations, batch.actions)
     x = np.concatenate([s, a], -1)
     keys = jax.random.split(key, 2)
     expected = []
     for k in range(2):
-        p = member(state.critic, k)
+        p = member(state.bear.critic, k)
         h = np.maximum(x @ np.float64(p["w0"]) + np.float64(p["b0"]), 0)
         keep = np.asarray(jax.random.bernoulli(keys[0], 0.6, (2, B, 8)))[k]
         h = np.maximum(np.where(keep, h / 0.6, 0) @ np.float64(p["w1"]) + np.float64(p["b1"]), 0)
@@ -267,9 +267,9 @@ def test_dropout_critic_drops_hidden_units_and_rescales(batch):
         )
     np.testing.assert_allclose(got, np.stack(expected), rtol=1e-5, atol=1e-6)
     no_dropout = uwac.dropout_critic_apply(
-        state.critic, batch.observations, batch.actions, key, 0.0
+        state.bear.critic, batch.observations, batch.actions, key, 0.0
     )
-    np.testing.assert_allclose(no_dropout, np_q(state.critic, 2, s, a), rtol=1e-5)
+    np.testing.assert_allclose(no_dropout, np_q(state.bear.critic, 2, s, a), rtol=1e-5)
 
 
 def test_mc_estimate_is_the_mean_and_summed_variance_over_dropout_passes(batch):
@@ -277,9 +277,11 @@ def test_mc_estimate_is_the_mean_and_summed_variance_over_dropout_passes(batch):
     state = uwac.init(jax.random.PRNGKey(0), OBS, ACT, config)
     critics = uwac.DropoutCritics(config)
     key = jax.random.PRNGKey(4)
-    mean, var = critics.estimate(state.critic, batch.observations, batch.actions, key)
+    mean, var = critics.estimate(state.bear.critic, batch.observations, batch.actions, key)
     obs, act = jnp.tile(batch.observations, (6, 1)), jnp.tile(batch.actions, (6, 1))
-    passes = np.asarray(uwac.dropout_critic_apply(state.critic, obs, act, key, 0.3), np.float64)
+    passes = np.asarray(
+        uwac.dropout_critic_apply(state.bear.critic, obs, act, key, 0.3), np.float64
+    )
     passes = passes.reshape(2, 6, B)
     np.testing.assert_allclose(mean, passes.mean(1), rtol=1e-5)
     np.testing.assert_allclose(var, passes.var(1, ddof=1).sum(0), rtol=1e-4)
@@ -289,8 +291,8 @@ def test_mc_estimate_is_the_mean_and_summed_variance_over_dropout_passes(batch):
 def test_spectral_norm_divides_by_the_power_iteration_estimate_and_converges():
     config = uwac.UWACConfig(**SMALL)
     state = uwac.init(jax.random.PRNGKey(0), OBS, ACT, config)
-    u, normalised = uwac.power_iteration(state.critic, state.spectral_u)
-    w = np.asarray(state.critic["w1"][1], np.float64)
+    u, normalised = uwac.power_iteration(state.bear.critic, state.spectral_u)
+    w = np.asarray(state.bear.critic["w1"][1], np.float64)
     v = w @ np.asarray(state.spectral_u["u1"][1], np.float64)
     v /= np.linalg.norm(v)
     u1 = v @ w
@@ -299,10 +301,10 @@ def test_spectral_norm_divides_by_the_power_iteration_estimate_and_converges():
     np.testing.assert_allclose(normalised["w1"][1], w / (v @ w @ u1), rtol=1e-5)
     many = jax.jit(
         lambda u: jax.lax.fori_loop(
-            0, 500, lambda _, u: uwac.power_iteration(state.critic, u)[0], u
+            0, 500, lambda _, u: uwac.power_iteration(state.bear.critic, u)[0], u
         )
     )
-    _, normalised = uwac.power_iteration(state.critic, many(u))
+    _, normalised = uwac.power_iteration(state.bear.critic, many(u))
     top = np.linalg.svd(np.asarray(normalised["w1"][1], np.float64), compute_uv=False)[0]
     np.testing.assert_allclose(top, 1.0, rtol=1e-3)
 
@@ -352,14 +354,11 @@ def test_uwac_without_dropout_or_spectral_norm_is_bear(batch):
     fields = {f.name: getattr(config, f.name) for f in dataclasses.fields(bear.BEARConfig)}
     bear_config = bear.BEARConfig(**fields)
     state = uwac.init(jax.random.PRNGKey(0), OBS, ACT, config)
-    base = bear.BEARState(
-        **{f.name: getattr(state, f.name) for f in dataclasses.fields(bear.BEARState)}
-    )
     key = jax.random.PRNGKey(6)
     new, metrics = uwac_update(state, batch, key, config, 1.0)
-    expected, expected_metrics = bear_update(base, batch, key, bear_config, 1.0)
+    expected, expected_metrics = bear_update(state.bear, batch, key, bear_config, 1.0)
     np.testing.assert_allclose(new.actor["w0"], expected.actor["w0"], rtol=1e-5, atol=1e-7)
-    np.testing.assert_allclose(new.critic["w1"], expected.critic["w1"], rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(new.bear.critic["w1"], expected.critic["w1"], rtol=1e-5, atol=1e-7)
     np.testing.assert_allclose(metrics["critic_loss"], expected_metrics["critic_loss"], rtol=1e-5)
     np.testing.assert_allclose(metrics["actor_weight"], 1.0)
 
@@ -369,8 +368,8 @@ def test_uwac_update_moves_the_spectral_vectors_and_is_deterministic(batch):
     state = uwac.init(jax.random.PRNGKey(0), OBS, ACT, config)
     new, metrics = uwac_update(state, batch, jax.random.PRNGKey(1), config, 1.0)
     again, _ = uwac_update(state, batch, jax.random.PRNGKey(1), config, 1.0)
-    np.testing.assert_array_equal(new.critic["w0"], again.critic["w0"])
-    expected, _ = uwac.power_iteration(state.critic_target, state.spectral_u_target)
+    np.testing.assert_array_equal(new.bear.critic["w0"], again.bear.critic["w0"])
+    expected, _ = uwac.power_iteration(state.bear.critic_target, state.spectral_u_target)
     np.testing.assert_allclose(new.spectral_u_target["u0"], expected["u0"], rtol=1e-6)
     assert not np.allclose(new.spectral_u["u0"], state.spectral_u["u0"])
     assert 0.0 < float(metrics["actor_weight"]) <= 1.0

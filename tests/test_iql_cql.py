@@ -239,7 +239,10 @@ def hand_gap(critic, actor, batch, key, n, max_action):
 
 def cql_state(config, seed=0):
     state = cql.init(jax.random.PRNGKey(seed), OBS, ACT, config)
-    return state.replace(critic_target=jax.tree.map(lambda x: 0.9 * x - 0.02, state.critic))
+    base = state.sac
+    return state.replace(
+        sac=base.replace(critic_target=jax.tree.map(lambda x: 0.9 * x - 0.02, base.critic))
+    )
 
 
 @pytest.mark.parametrize("max_action", [1.0, 2.0])
@@ -247,9 +250,11 @@ def test_cql_conservative_gap_matches_hand_computation(batch, max_action):
     config = cql.CQLConfig(hidden_dims=(8, 8), num_sampled_actions=3)
     state = cql_state(config)
     key = jax.random.PRNGKey(7)
-    q_data = networks.critic_apply(state.critic, batch.observations, batch.actions)
-    gap = cql.conservative_gap(state.critic, state.actor, batch, q_data, key, config, max_action)
-    expected = hand_gap(state.critic, state.actor, batch, key, 3, max_action)
+    q_data = networks.critic_apply(state.sac.critic, batch.observations, batch.actions)
+    gap = cql.conservative_gap(
+        state.sac.critic, state.actor, batch, q_data, key, config, max_action
+    )
+    expected = hand_gap(state.sac.critic, state.actor, batch, key, 3, max_action)
     np.testing.assert_allclose(gap, expected, rtol=1e-4)
 
 
@@ -258,16 +263,16 @@ def test_cql_critic_loss_matches_hand_computation(batch, lagrange):
     config = cql.CQLConfig(hidden_dims=(8, 8), num_sampled_actions=4, lagrange=lagrange)
     state = cql_state(config)
     key = jax.random.PRNGKey(3)
-    loss, (gap, metrics) = cql.critic_loss(state.critic, state, batch, key, config, 1.0)
+    loss, (gap, metrics) = cql.critic_loss(state.sac.critic, state, batch, key, config, 1.0)
 
     target_key, gap_key = jax.random.split(key)
     next_action, _ = sac.sample_action(state.actor, batch.next_observations, target_key, 1.0)
     s, a, r, s2, d = as64(*dataclasses.astuple(batch))
     # No entropy term in the backup (JaxCQL's backup_entropy=False).
-    y = r + 0.99 * (1 - d) * np_q(state.critic_target, 2, s2, np.asarray(next_action)).min(0)
-    q = np_q(state.critic, 2, s, a)
+    y = r + 0.99 * (1 - d) * np_q(state.sac.critic_target, 2, s2, np.asarray(next_action)).min(0)
+    q = np_q(state.sac.critic, 2, s, a)
     td = ((q[0] - y) ** 2).mean() + ((q[1] - y) ** 2).mean()
-    gaps = hand_gap(state.critic, state.actor, batch, gap_key, 4, 1.0)
+    gaps = hand_gap(state.sac.critic, state.actor, batch, gap_key, 4, 1.0)
     if lagrange:  # alpha' = e^1 at the start, the target gap is 1
         penalty = np.e * 5.0 * (gaps - 1.0).sum()
     else:
@@ -287,15 +292,15 @@ def test_cql_update_steps_every_loss_from_the_current_state(batch, lagrange):
 
     # The actor maximises the critics of before the step (as in JaxCQL).
     actor_loss, _ = sac.actor_loss(
-        state.actor, state.critic, state.log_alpha, batch, actor_key, 1.0
+        state.actor, state.sac.critic, state.sac.log_alpha, batch, actor_key, 1.0
     )
     np.testing.assert_allclose(metrics["actor_loss"], actor_loss, rtol=1e-6)
     assert not np.allclose(new.actor["w0"], state.actor["w0"])
-    assert not np.allclose(new.critic["w0"], state.critic["w0"])
+    assert not np.allclose(new.sac.critic["w0"], state.sac.critic["w0"])
     assert int(new.step) == 1
     # Adam's first step on log(alpha') is lr * sign(mean gap - target gap): alpha' rises while
     # the critics' gap exceeds the target.
-    gap = hand_gap(state.critic, state.actor, batch, jax.random.split(critic_key)[1], 4, 1.0)
+    gap = hand_gap(state.sac.critic, state.actor, batch, jax.random.split(critic_key)[1], 4, 1.0)
     if lagrange:
         expected = 1.0 + 3e-4 * np.sign(gap.mean() - 1.0)
         np.testing.assert_allclose(new.log_alpha_prime, expected, rtol=1e-5)

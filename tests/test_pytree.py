@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import subprocess
 import sys
 
@@ -13,7 +14,7 @@ import optax
 import pytest
 
 from eabc import pytree
-from eabc.agents import sac
+from eabc.agents import get_algorithm, sac
 
 
 @pytree.dataclass
@@ -57,6 +58,37 @@ def test_state_dict_names_fields_and_positions_and_restores_into_the_template():
     assert jax.tree.structure(restored) == jax.tree.structure(state)
     with pytest.raises(ValueError, match="lacks"):
         pytree.from_state_dict(state, {"params": flat["params"], "step": flat["step"]})
+
+
+@pytest.mark.parametrize(("algo", "base"), [("td3bc", None), ("wpc", "td3bc"), ("cql", "sac"),
+                                          ("uwac", "bear")])  # fmt: skip
+def test_find_reads_actor_and_step_wherever_the_state_keeps_them(algo, base):
+    """A state that holds its base algorithm's state keeps ``actor`` and ``step`` there: the
+    object delegates to it, and :func:`pytree.find` reaches them in the state dict."""
+    algorithm = get_algorithm(algo)
+    config = dataclasses.replace(algorithm.preset, hidden_dims=(4,))
+    state = algorithm.init(jax.random.PRNGKey(0), 3, 2, config)
+    flat = pytree.to_state_dict(state)
+    assert ("actor" in flat) == (base is None)
+    if base is not None:  # nested: a checkpoint of layout 2 and more
+        assert set(flat[base]) >= {"actor", "step"}
+        assert getattr(state, base).actor is state.actor and getattr(state, base).step is state.step
+    actor = pytree.find(flat, "actor")
+    assert sorted(actor) == sorted(state.actor)
+    for name in state.actor:
+        np.testing.assert_array_equal(actor[name], state.actor[name])
+    assert int(pytree.find(flat, "step")) == int(state.step) == 0
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        state.step = 1  # read-only on every state
+
+
+def test_find_refuses_a_missing_or_ambiguous_entry():
+    nested = {"value": {"w0": 1}, "outer": {"inner": {"actor": 2, "step": 3}}}
+    assert pytree.find(nested, "actor") == 2 and pytree.find(nested, "step") == 3
+    with pytest.raises(KeyError, match="nothing holds it"):
+        pytree.find(nested, "critic")
+    with pytest.raises(KeyError, match="both 'a' and 'b' hold it"):
+        pytree.find({"a": {"actor": 1}, "b": {"x": {"actor": 2}}}, "actor")
 
 
 def test_the_bytes_are_flax_msgpack_layout_so_old_checkpoints_load():

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from eabc import pytree
 from eabc.agents import get_algorithm
 from eabc.training import checkpoint
 from eabc.training.checkpoint import read_config
@@ -40,13 +41,14 @@ def export_onnx(run_dir: str | Path, path: str | Path) -> Path:
 
     run_dir = Path(run_dir)
     config = read_config(run_dir)
+    algorithm = get_algorithm(config["train"]["algo"])
     raw = checkpoint.load_raw(run_dir)
-    actor = {k: np.asarray(v, np.float32) for k, v in raw["agent"]["actor"].items()}
+    actor = {k: np.asarray(v, np.float32) for k, v in pytree.find(raw["agent"], "actor").items()}
     if any(name.startswith("g") for name in actor):
         raise ValueError(f"{run_dir}: the actor has LayerNorm layers, which the export lacks")
     layers = sum(1 for name in actor if name.startswith("w"))
     weights = [(actor[f"w{i}"], actor[f"b{i}"]) for i in range(layers)]
-    if get_algorithm(config["train"]["algo"]).gaussian_actor:  # the mean: first half of outputs
+    if algorithm.gaussian_actor:  # the mean: first half of outputs
         w, b = weights[-1]
         half = w.shape[1] // 2
         weights[-1] = (w[:, :half], b[:half])

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from eabc import pytree
 from eabc.agents import get_algorithm
 from eabc.data.dataset import Normalizer
 from eabc.evaluation import Policy
@@ -25,10 +26,10 @@ def load_policy(run_dir: str | Path) -> Policy:
     """
     run_dir = Path(run_dir)
     config = read_config(run_dir)
+    algorithm = get_algorithm(config["train"]["algo"])
     raw = checkpoint.load_raw(run_dir)
-    actor = {k: np.asarray(v) for k, v in raw["agent"]["actor"].items()}
+    actor = {k: np.asarray(v) for k, v in pytree.find(raw["agent"], "actor").items()}
     normalizer = Normalizer(
         np.asarray(raw["normalizer"]["mean"]), np.asarray(raw["normalizer"]["std"])
     )
-    gaussian = get_algorithm(config["train"]["algo"]).gaussian_actor
-    return Policy(actor, normalizer, config["max_action"], gaussian)
+    return Policy(actor, normalizer, config["max_action"], algorithm.gaussian_actor)

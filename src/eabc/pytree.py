@@ -6,6 +6,8 @@ becomes nested dicts of arrays and plain values with :func:`to_state_dict` (data
 name, named tuples such as optax's states by field name, lists and tuples by position as
 ``"0"``, ``"1"``, ...) and comes back into a template's structure with :func:`from_state_dict`.
 
+:func:`find` reads an entry such as ``actor`` from a state dict wherever the state keeps it.
+
 :func:`dumps` and :func:`loads` write and read those dicts as msgpack with NumPy arrays as
 extension type 1, ``(shape, dtype name, C-order bytes)``, and NumPy scalars as type 3,
 ``(dtype name, bytes)``: the layout flax's ``msgpack_serialize`` writes, so checkpoints written
@@ -100,6 +102,24 @@ def from_state_dict(template: Any, state: Any, path: str = "") -> Any:
         items = [from_state_dict(t, state[str(i)], f"{path}/{i}") for i, t in enumerate(template)]
         return type(template)(items)
     return state
+
+
+def find(state: dict[str, Any], name: str) -> Any:
+    """The entry ``name`` of a state dict (of :func:`to_state_dict`): at its top level, or inside
+    the one nested state that holds it (a state that holds its base algorithm's state as one
+    field, like wPC's TD3+BC state, keeps ``actor`` and ``step`` there). ``KeyError`` when no
+    nested state or more than one holds it."""
+    if name in state:
+        return state[name]
+    holders = [k for k, v in state.items() if isinstance(v, dict) and _holds(v, name)]
+    if len(holders) != 1:
+        where = f"both {holders[0]!r} and {holders[1]!r} hold it" if holders else "nothing holds it"
+        raise KeyError(f"the state has no single {name!r} ({where})")
+    return find(state[holders[0]], name)
+
+
+def _holds(state: dict[str, Any], name: str) -> bool:
+    return name in state or any(isinstance(v, dict) and _holds(v, name) for v in state.values())
 
 
 def _pack(x: Any) -> msgpack.ExtType:

@@ -4,7 +4,9 @@ may know of an algorithm, in one typed description defined in the algorithm's ow
 An algorithm file ends with ``ALGORITHMS = (Algorithm(...), ...)``; ``eabc.agents`` registers every
 file listed in its one tuple of modules. Generic code asks the description and never names an
 algorithm or its settings. The state ``init`` returns is a pytree (a dataclass of :mod:`eabc.pytree`) with
-``.actor`` (the policy's parameters) and ``.step`` (gradient steps taken); ``update`` is pure, so the
+``.actor`` (the policy's parameters) and ``.step`` (gradient steps taken); a state built on another
+algorithm's holds that state as one field and delegates both to it (read-only properties), and in
+a checkpoint :func:`eabc.pytree.find` reaches them either way. ``update`` is pure, so the
 trainer can run it inside one ``lax.scan`` and ``vmap`` it over seeds.
 """
 

@@ -89,10 +89,20 @@ PRESETS: dict[str, CQLConfig] = {
 
 
 @pytree.dataclass
-class CQLState(sac.SACState):
-    log_alpha_prime: jax.Array = None
+class CQLState:
+    sac: sac.SACState
+    """SAC's actor, twin critics, target critics, temperature and optimisers."""
+    log_alpha_prime: jax.Array
     """log(alpha'), only trained with ``lagrange``."""
-    alpha_prime_opt: optax.OptState = None
+    alpha_prime_opt: optax.OptState
+
+    @property
+    def actor(self) -> networks.Params:
+        return self.sac.actor
+
+    @property
+    def step(self) -> jax.Array:
+        return self.sac.step
 
 
 def _optimizers(config: CQLConfig) -> tuple[optax.GradientTransformation, ...]:
@@ -114,11 +124,9 @@ def init(key: jax.Array, obs_dim: int, act_dim: int, config: CQLConfig) -> CQLSt
         target_entropy=config.target_entropy,
         hidden_dims=config.hidden_dims,
     )
-    base = sac.init(key, obs_dim, act_dim, backbone)
     log_alpha_prime = jnp.asarray(INIT_LOG_ALPHA_PRIME, jnp.float32)
-    fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(base)}
     return CQLState(
-        **fields,
+        sac=sac.init(key, obs_dim, act_dim, backbone),
         log_alpha_prime=log_alpha_prime,
         alpha_prime_opt=optax.adam(config.alpha_prime_lr).init(log_alpha_prime),
     )
@@ -150,18 +158,19 @@ def conservative_gap(critic, actor, batch: Batch, q_data, key, config: CQLConfig
 
 
 def critic_loss(critic, state: CQLState, batch: Batch, key, config: CQLConfig, max_action):
+    base = state.sac
     target_key, gap_key = jax.random.split(key)
     next_action, next_log_prob = sac.sample_action(
-        state.actor, batch.next_observations, target_key, max_action
+        base.actor, batch.next_observations, target_key, max_action
     )
-    target_q = networks.critic_apply(state.critic_target, batch.next_observations, next_action)
+    target_q = networks.critic_apply(base.critic_target, batch.next_observations, next_action)
     next_value = target_q.min(axis=0)
     if config.backup_entropy:
-        next_value = next_value - jnp.exp(state.log_alpha) * next_log_prob
+        next_value = next_value - jnp.exp(base.log_alpha) * next_log_prob
     y = jax.lax.stop_gradient(batch.rewards + config.discount * (1.0 - batch.dones) * next_value)
     q = networks.critic_apply(critic, batch.observations, batch.actions)
     td = ((q - y[None]) ** 2).mean(axis=1).sum()
-    gap = conservative_gap(critic, state.actor, batch, q, gap_key, config, max_action)
+    gap = conservative_gap(critic, base.actor, batch, q, gap_key, config, max_action)
     if config.lagrange:
         weight = alpha_prime(state.log_alpha_prime) * config.min_q_weight
         penalty = weight * (gap - config.target_action_gap).sum()
@@ -199,22 +208,23 @@ def update(
     """One gradient step of critics, actor, temperature (and alpha'), all from the current state."""
     actor_tx, critic_tx, alpha_tx, alpha_prime_tx = _optimizers(config)
     critic_key, actor_key = jax.random.split(key)
+    base = state.sac
 
     grads, (gap, critic_metrics) = jax.grad(critic_loss, has_aux=True)(
-        state.critic, state, batch, critic_key, config, max_action
+        base.critic, state, batch, critic_key, config, max_action
     )
-    critic, critic_opt = apply_gradients(critic_tx, grads, state.critic_opt, state.critic)
+    critic, critic_opt = apply_gradients(critic_tx, grads, base.critic_opt, base.critic)
 
     grads, (log_prob, actor_metrics) = jax.grad(sac.actor_loss, has_aux=True)(
-        state.actor, state.critic, state.log_alpha, batch, actor_key, max_action
+        base.actor, base.critic, base.log_alpha, batch, actor_key, max_action
     )
-    actor, actor_opt = apply_gradients(actor_tx, grads, state.actor_opt, state.actor)
+    actor, actor_opt = apply_gradients(actor_tx, grads, base.actor_opt, base.actor)
 
-    entropy_gap = jax.lax.stop_gradient(log_prob + state.target_entropy).mean()
+    entropy_gap = jax.lax.stop_gradient(log_prob + base.target_entropy).mean()
     alpha_grad = -entropy_gap  # d/d(log_alpha) of -log_alpha * mean(log_pi + target_entropy)
-    log_alpha, alpha_opt = apply_gradients(alpha_tx, alpha_grad, state.alpha_opt, state.log_alpha)
+    log_alpha, alpha_opt = apply_gradients(alpha_tx, alpha_grad, base.alpha_opt, base.log_alpha)
 
-    metrics = {**critic_metrics, **actor_metrics, "alpha": jnp.exp(state.log_alpha)}
+    metrics = {**critic_metrics, **actor_metrics, "alpha": jnp.exp(base.log_alpha)}
     log_alpha_prime, alpha_prime_opt = state.log_alpha_prime, state.alpha_prime_opt
     if config.lagrange:
         grad = jax.grad(alpha_prime_loss)(state.log_alpha_prime, gap, config)
@@ -223,17 +233,18 @@ def update(
         )
         metrics["alpha_prime"] = alpha_prime(state.log_alpha_prime)
 
-    new_state = state.replace(
+    backbone = base.replace(
         actor=actor,
         critic=critic,
-        critic_target=networks.polyak(state.critic_target, critic, config.tau),
+        critic_target=networks.polyak(base.critic_target, critic, config.tau),
         log_alpha=log_alpha,
-        log_alpha_prime=log_alpha_prime,
         actor_opt=actor_opt,
         critic_opt=critic_opt,
         alpha_opt=alpha_opt,
-        alpha_prime_opt=alpha_prime_opt,
-        step=state.step + 1,
+        step=base.step + 1,
+    )
+    new_state = CQLState(
+        sac=backbone, log_alpha_prime=log_alpha_prime, alpha_prime_opt=alpha_prime_opt
     )
     return new_state, metrics
 

@@ -95,19 +95,29 @@ PRESETS: dict[str, UWACConfig] = {"uwac": UWACConfig()}
 
 
 @pytree.dataclass
-class UWACState(BEARState):
-    spectral_u: networks.Params = None
+class UWACState:
+    bear: BEARState
+    """BEAR's actor, critics, VAE, multiplier, targets and optimisers, stepped by
+    :func:`eabc.agents.bear.step`."""
+    spectral_u: networks.Params
     """Power-iteration vectors of the critics' layers (``u{i}: [K, out]``)."""
-    spectral_u_target: networks.Params = None
+    spectral_u_target: networks.Params
     """The target critics' own vectors (PyTorch keeps them as buffers, outside the Polyak copy)."""
+
+    @property
+    def actor(self) -> networks.Params:
+        return self.bear.actor
+
+    @property
+    def step(self) -> jax.Array:
+        return self.bear.step
 
 
 def init(key: jax.Array, obs_dim: int, act_dim: int, config: UWACConfig) -> UWACState:
     net_key, u_key, u_target_key = jax.random.split(key, 3)
     base = bear.init(net_key, obs_dim, act_dim, config)
-    fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(base)}
     return UWACState(
-        **fields,
+        bear=base,
         spectral_u=init_spectral_u(u_key, base.critic),
         spectral_u_target=init_spectral_u(u_target_key, base.critic),
     )
@@ -208,11 +218,12 @@ def update(
     u = state.spectral_u if config.spectral_norm else None
     u_target = state.spectral_u_target if config.spectral_norm else None
     critics = DropoutCritics(config, u, u_target)
-    new_state, metrics = bear.step(state, batch, key, config, max_action, critics)
+    base, metrics = bear.step(state.bear, batch, key, config, max_action, critics)
+    new_state = state.replace(bear=base)
     if config.spectral_norm:
         new_state = new_state.replace(
-            spectral_u=power_iteration(state.critic, state.spectral_u)[0],
-            spectral_u_target=power_iteration(state.critic_target, state.spectral_u_target)[0],
+            spectral_u=power_iteration(state.bear.critic, state.spectral_u)[0],
+            spectral_u_target=power_iteration(state.bear.critic_target, state.spectral_u_target)[0],
         )
     return new_state, metrics
 

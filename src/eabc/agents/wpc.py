@@ -37,17 +37,30 @@ PRESETS = {"wpc": WPCConfig()}
 
 
 @pytree.dataclass
-class WPCState(eabc.EABCState):
-    value: networks.Params = None
-    value_opt: optax.OptState = None
+class WPCState:
+    td3bc: eabc.EABCState
+    """TD3+BC's actor, critics, targets and optimisers, trained by :mod:`eabc.agents.eabc`."""
+    value: networks.Params
+    """V(s)."""
+    value_opt: optax.OptState
+
+    @property
+    def actor(self) -> networks.Params:
+        return self.td3bc.actor
+
+    @property
+    def step(self) -> jax.Array:
+        return self.td3bc.step
 
 
 def init(key: jax.Array, obs_dim: int, act_dim: int, config: WPCConfig) -> WPCState:
     agent_key, value_key = jax.random.split(key)
-    base = eabc.init(agent_key, obs_dim, act_dim, config)
     value = networks.init_mlp(value_key, (obs_dim, *config.hidden_dims, 1))
-    fields = {f.name: getattr(base, f.name) for f in dataclasses.fields(base)}
-    return WPCState(**fields, value=value, value_opt=optax.adam(config.value_lr).init(value))
+    return WPCState(
+        td3bc=eabc.init(agent_key, obs_dim, act_dim, config),
+        value=value,
+        value_opt=optax.adam(config.value_lr).init(value),
+    )
 
 
 def value_loss(value, critic_target, batch: Batch):
@@ -64,22 +77,23 @@ def update(
     state: WPCState, batch: Batch, key: jax.Array, config: WPCConfig, max_action: float
 ) -> tuple[WPCState, dict[str, jax.Array]]:
     """Critic step, value step, then (every policy_freq steps) the advantage-masked actor step."""
+    base = state.td3bc
     critic_key, actor_key = jax.random.split(key)
     critic, critic_opt, critic_metrics = eabc.critic_step(
-        state, batch, critic_key, config, max_action
+        base, batch, critic_key, config, max_action
     )
     grads, (advantage, value_metrics) = jax.grad(value_loss, has_aux=True)(
-        state.value, state.critic_target, batch
+        state.value, base.critic_target, batch
     )
     value, value_opt = apply_gradients(
         optax.adam(config.value_lr), grads, state.value_opt, state.value
     )
-    step = state.step + 1
+    step = base.step + 1
     keep = advantage > 0
     (actor, actor_opt, actor_target, critic_target), actor_metrics = eabc.delayed_actor_step(
-        state, critic, step, batch, actor_key, config, max_action, keep
+        base, critic, step, batch, actor_key, config, max_action, keep
     )
-    new_state = state.replace(
+    td3bc = base.replace(
         actor=actor,
         critic=critic,
         actor_target=actor_target,
@@ -87,9 +101,8 @@ def update(
         actor_opt=actor_opt,
         critic_opt=critic_opt,
         step=step,
-        value=value,
-        value_opt=value_opt,
     )
+    new_state = WPCState(td3bc=td3bc, value=value, value_opt=value_opt)
     metrics = {
         **critic_metrics,
         **value_metrics,

@@ -42,6 +42,7 @@ def status(run: RunSpec, root: Path) -> tuple[str, int]:
 
 def _status(run: RunSpec, root: Path) -> tuple[str, int, str]:
     """:func:`status` and why, in words (for ``changed`` and ``broken``)."""
+    from eabc import pytree  # noqa: PLC0415
     from eabc.training import checkpoint  # noqa: PLC0415
 
     run_dir = root / RUNS / run.run_id
@@ -64,7 +65,7 @@ def _status(run: RunSpec, root: Path) -> tuple[str, int, str]:
         return "done", steps, ""
     if (run_dir / checkpoint.CHECKPOINT).exists():
         try:
-            return "partial", int(checkpoint.load_raw(run_dir)["agent"]["step"]), ""
+            return "partial", int(pytree.find(checkpoint.load_raw(run_dir)["agent"], "step")), ""
         except (ValueError, KeyError, TypeError) as error:
             return "broken", 0, str(error)
     return "pending", 0, ""
