@@ -4,8 +4,9 @@ hand-computed loss tests and their learning checks.
 
 For each algorithm, at tiny sizes on the Pendulum data: two seeds trained together (the vmapped,
 scanned chunk), finite metrics in every log row, the seeds differing, a checkpoint that restores
-exactly, the contract's settings resolved and validated, and ``load_policy`` giving actions of the
-right shape inside the action bounds.
+exactly and records the algorithm's state layout (its actor and step found by name, wherever the
+state keeps them), the contract's settings resolved and validated, and ``load_policy`` giving
+actions of the right shape inside the action bounds.
 """
 
 from __future__ import annotations
@@ -17,10 +18,10 @@ import os
 import jax
 import numpy as np
 
-from eabc import load_policy
+from eabc import load_policy, pytree
 from eabc.agents import get_algorithm
 from eabc.agents.contract import Algorithm
-from eabc.training import chunks, trainer
+from eabc.training import checkpoint, chunks, trainer
 
 TINY_INTS = {"buffer_capacity": 4096, "model_max_epochs": 1, "model_members": 2, "model_elites": 1,
              "num_dropout_samples": 4, "num_target_actions": 4}  # fmt: skip
@@ -92,6 +93,13 @@ def _check_contract(tmp_path, pendulum_dataset, algo: str) -> None:
     assert len(saved) == len(restored)
     for a, b in zip(saved, restored):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+    raw = checkpoint.load_raw(runs[0].run_dir)  # what load_policy, export and sweeps read
+    assert raw[checkpoint.LAYOUT] == algorithm.state_layout
+    assert int(pytree.find(raw["agent"], "step")) == 10
+    saved_actor = pytree.find(raw["agent"], "actor")
+    for name, value in jax.device_get(runs[0].state["agent"].actor).items():
+        np.testing.assert_array_equal(saved_actor[name], value)
 
     policy = load_policy(runs[0].run_dir)
     observations = pendulum_dataset.observations[:4]

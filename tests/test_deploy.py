@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from eabc import load_policy
+from eabc.agents import get_algorithm
 from eabc.cli import main
 from eabc.data.dataset import Normalizer
 from eabc.training import checkpoint
@@ -26,11 +27,11 @@ def write_run(run_dir, algo, observations, outputs, seed=0):
     run_dir.mkdir()
     config = {"train": {"algo": algo}, "dataset": {"name": "pendulum"}, "max_action": 2.0}
     checkpoint.save_json(run_dir / checkpoint.CONFIG, config)
-    state = {
-        "agent": {"actor": actor},
-        "normalizer": {"mean": normalizer.mean, "std": normalizer.std},
-    }
-    checkpoint.save(run_dir, state)
+    layout = get_algorithm(algo).state_layout
+    # CQL's state (layout 2) holds its SAC state, and the actor in it, as the trainer writes it.
+    agent = {"actor": actor} if layout == 1 else {"sac": {"actor": actor}}
+    state = {"agent": agent, "normalizer": {"mean": normalizer.mean, "std": normalizer.std}}
+    checkpoint.save(run_dir, state, layout)
 
 
 @pytest.mark.parametrize(("algo", "outputs"), [("td3bc", 1), ("cql", 2)])  # Gaussian: mean, log std

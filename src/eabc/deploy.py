@@ -42,7 +42,9 @@ def export_onnx(run_dir: str | Path, path: str | Path) -> Path:
     run_dir = Path(run_dir)
     config = read_config(run_dir)
     algorithm = get_algorithm(config["train"]["algo"])
-    raw = checkpoint.load_raw(run_dir)
+    raw = checkpoint.check_layout(
+        checkpoint.load_raw(run_dir), run_dir, algorithm.name, algorithm.state_layout
+    )
     actor = {k: np.asarray(v, np.float32) for k, v in pytree.find(raw["agent"], "actor").items()}
     if any(name.startswith("g") for name in actor):
         raise ValueError(f"{run_dir}: the actor has LayerNorm layers, which the export lacks")

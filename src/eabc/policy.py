@@ -27,7 +27,9 @@ def load_policy(run_dir: str | Path) -> Policy:
     run_dir = Path(run_dir)
     config = read_config(run_dir)
     algorithm = get_algorithm(config["train"]["algo"])
-    raw = checkpoint.load_raw(run_dir)
+    raw = checkpoint.check_layout(
+        checkpoint.load_raw(run_dir), run_dir, algorithm.name, algorithm.state_layout
+    )
     actor = {k: np.asarray(v) for k, v in pytree.find(raw["agent"], "actor").items()}
     normalizer = Normalizer(
         np.asarray(raw["normalizer"]["mean"]), np.asarray(raw["normalizer"]["std"])

@@ -73,6 +73,10 @@ class Algorithm:
     column: float = 50.0
     """Where its column goes in the paper's tables (Table 1's order, then Table 6's, then the
     rest); ties by name."""
+    state_layout: int = 1
+    """The layout of ``init``'s state in checkpoints, which record it: raise it when the state's
+    entries move or are renamed, so that checkpoints of the old layout are refused with a message
+    that says so (2: wPC, CQL and UWAC, whose states came to hold their base's as one field)."""
 
     @property
     def gaussian_actor(self) -> bool:

@@ -230,6 +230,7 @@ def update(
 
 ALGORITHMS = (
     # steps/s: a rough hint (100 dropout passes per step; not benchmarked quiet yet).
+    # state_layout 2: the BEAR state as one field
     Algorithm("uwac", "UWAC", PRESETS["uwac"], init, update, column=10, actor="tanh-gaussian",
-              steps_per_s=3.0),
+              steps_per_s=3.0, state_layout=2),
 )  # fmt: skip

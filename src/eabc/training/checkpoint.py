@@ -4,6 +4,10 @@ A checkpoint file is the msgpack payload followed by a 40-byte trailer, ``EABCSU
 payload's SHA-256, checked on every read. Files from before the trailer (version 0) still load:
 they are checked for structure and for NaN/inf weights (the traces of corruption that can be seen
 without a checksum).
+
+A training run's payload records its agent state's layout (``state_layout``, the algorithm's
+:attr:`~eabc.agents.contract.Algorithm.state_layout`; absent in files from before it: layout 1),
+so that a checkpoint of another layout is refused with a message that says why.
 """
 
 from __future__ import annotations
@@ -24,6 +28,8 @@ CHECKPOINT = "checkpoint.msgpack"
 CONFIG = "config.json"
 TRAILER = b"EABCSUM1"
 """Marks a checkpoint that ends in its payload's SHA-256 (format version 1)."""
+LAYOUT = "state_layout"
+"""The payload's entry that records the agent state's layout."""
 
 
 class CheckpointError(ValueError):
@@ -46,8 +52,11 @@ def atomic_write(path: Path, data: bytes) -> None:
         raise
 
 
-def save(run_dir: Path, payload: dict[str, Any]) -> None:
-    """Save a pytree of arrays and plain values (train state, key, normaliser, history)."""
+def save(run_dir: Path, payload: dict[str, Any], state_layout: int | None = None) -> None:
+    """Save a pytree of arrays and plain values (train state, key, normaliser, history), with
+    the agent state's layout when given."""
+    if state_layout is not None:
+        payload = {**payload, LAYOUT: state_layout}
     data = pytree.dumps(pytree.to_state_dict(jax.device_get(payload)))
     atomic_write(Path(run_dir) / CHECKPOINT, data + TRAILER + hashlib.sha256(data).digest())
 
@@ -89,12 +98,40 @@ def load_raw(run_dir: Path) -> dict[str, Any]:
     return raw
 
 
-def load(run_dir: Path, template: dict[str, Any], what: str = "this run") -> dict[str, Any]:
-    """Restore into the structure of ``template``, refusing a checkpoint whose structure, shapes
-    or dtypes differ from it (another run's checkpoint: ``what`` names this run's settings)."""
-    raw = load_raw(run_dir)
+def load(
+    run_dir: Path,
+    template: dict[str, Any],
+    what: str = "this run",
+    algo: str = "this algorithm",
+    state_layout: int = 1,
+) -> dict[str, Any]:
+    """Restore into the structure of ``template``, refusing a checkpoint of another state layout
+    than ``state_layout`` (``algo``'s) or whose structure, shapes or dtypes differ from it
+    (another run's checkpoint: ``what`` names this run's settings)."""
+    raw = check_layout(load_raw(run_dir), run_dir, algo, state_layout)
     check_structure(raw, pytree.to_state_dict(template), Path(run_dir) / CHECKPOINT, what)
     return pytree.from_state_dict(template, raw)
+
+
+def check_layout(raw: dict[str, Any], run_dir: Path, algo: str, state_layout: int) -> dict:
+    """``raw`` without its recorded layout; :class:`CheckpointError` when that layout (1 where
+    none is recorded) is not ``state_layout``, the one this version of ``algo`` reads."""
+    found = int(raw.get(LAYOUT, 1))
+    path = Path(run_dir) / CHECKPOINT
+    if found < state_layout:
+        raise CheckpointError(
+            f"{path} was written by an older version of eabc, with an older state layout for "
+            f"{algo} (layout {found}; this version reads layout {state_layout}), so it cannot be "
+            "resumed or evaluated here: train the run again (in a fresh directory, or after "
+            "deleting the checkpoint), or use the older package version to finish it"
+        )
+    if found > state_layout:
+        raise CheckpointError(
+            f"{path} was written by a newer version of eabc, with a newer state layout for "
+            f"{algo} (layout {found}; this version reads layout {state_layout}): use that "
+            "version (or a later one) to resume or evaluate it"
+        )
+    return {key: value for key, value in raw.items() if key != LAYOUT}
 
 
 def check_structure(raw: Any, template: Any, path: Path, what: str, prefix: str = "") -> None:

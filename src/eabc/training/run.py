@@ -278,7 +278,8 @@ def _build(run_dir, config, agent_config, dataset, state) -> Run:
         )
     if state == "checkpoint":
         what = f"this {config.algo} run ({_settings_text(algorithm, agent_config)}, {dataset.name})"
-        saved = checkpoint.load(run_dir, {**fresh, "evaluations": None}, what)
+        template = {**fresh, "evaluations": None}
+        saved = checkpoint.load(run_dir, template, what, config.algo, algorithm.state_layout)
         fresh = {**saved, "evaluations": saved["evaluations"] or {}}
         normalizer = Normalizer(**{k: np.asarray(v) for k, v in saved["normalizer"].items()})
     return Run(
