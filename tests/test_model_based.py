@@ -178,6 +178,30 @@ def test_update_refills_every_interval_and_mixes_real_data(batch):
     np.testing.assert_array_equal(mixed.observations[:2], batch.observations[:2])  # round(0.3 * 7)
 
 
+def test_every_step_reports_the_latest_refills_metrics_so_the_log_shows_their_values(batch):
+    """Refills come every ``rollout_interval`` steps; the steps between report the latest one's
+    metrics, so a chunk's mean (``summarize_metrics``) is the refills' value, not a fraction."""
+    config = mopo.MOPOConfig(**SMALL, rollout_length=2, rollout_interval=3, termination="none")
+    state = model_state(config)
+    _, expected = mopo.rollout(
+        state, batch.observations, jax.random.split(jax.random.PRNGKey(0), 3)[0], config, 1.0
+    )
+    assert float(expected["rollout_penalty"]) > 0
+    update = jax.jit(mopo.update, static_argnums=(3, 4), compiler_options=FAST_COMPILE_OPTIONS)
+    steps = []
+    for i in range(3):  # one refill (step 0), then two steps without
+        state, metrics = update(state, batch, jax.random.PRNGKey(i), config, 1.0)
+        steps.append(metrics)
+    for name in mopo.ROLLOUT_METRICS:
+        for metrics in steps:
+            np.testing.assert_allclose(metrics[name], expected[name], rtol=1e-6)
+    logged = chunks.summarize_metrics(
+        {name: np.stack([np.asarray(m[name]) for m in steps]) for name in steps[0]},
+        get_algorithm("mopo").step_metrics,
+    )
+    np.testing.assert_allclose(logged["rollout_penalty"], expected["rollout_penalty"], rtol=1e-6)
+
+
 def test_per_task_settings_are_resolved_from_the_dataset_name():
     config = trainer.resolve_agent_config("mopo", "hopper-medium", {})
     assert (config.rollout_length, config.penalty_coeff, config.termination) == (5, 5.0, "hopper")

@@ -173,6 +173,14 @@ class MOPOState(sac.SACState):
     """The model-rollout ring buffer, ``[capacity, ...]``."""
     buffer_ptr: jax.Array = None
     buffer_count: jax.Array = None
+    rollout_metrics: dict[str, jax.Array] = None
+    """The latest refill's metrics (:func:`rollout`), which every step reports: a chunk's log
+    row then shows their real values, not a fifth of them."""
+
+
+ROLLOUT_METRICS = ("rollout_penalty", "rollout_disagreement", "rollout_done")
+"""What a refill measures over the transitions it writes: the mean penalty ``u(s, a)``, the mean
+disagreement, the share of ended rollouts."""
 
 
 def init(key: jax.Array, obs_dim: int, act_dim: int, config: MOPOConfig) -> MOPOState:
@@ -197,6 +205,7 @@ def init(key: jax.Array, obs_dim: int, act_dim: int, config: MOPOConfig) -> MOPO
         ),
         buffer_ptr=jnp.zeros((), jnp.int32),
         buffer_count=jnp.zeros((), jnp.int32),
+        rollout_metrics={name: jnp.zeros(()) for name in ROLLOUT_METRICS},
     )
 
 
@@ -304,18 +313,20 @@ def mixed_batch(state: MOPOState, batch: Batch, key, config: MOPOConfig) -> Batc
 def update(
     state: MOPOState, batch: Batch, key: jax.Array, config: MOPOConfig, max_action: float
 ) -> tuple[MOPOState, dict[str, jax.Array]]:
-    """Refill the model buffer when due, then one SAC step on the mixed batch. Pure."""
+    """Refill the model buffer when due, then one SAC step on the mixed batch. Pure. Every step
+    reports the latest refill's metrics."""
     rollout_key, sample_key, sac_key = jax.random.split(key, 3)
-    zeros = {"rollout_penalty": 0.0, "rollout_disagreement": 0.0, "rollout_done": 0.0}
-    state, rollout_metrics = jax.lax.cond(
-        state.step % config.rollout_interval == 0,
-        lambda s: rollout(s, batch.observations, rollout_key, config, max_action),
-        lambda s: (s, jax.tree.map(jnp.asarray, zeros)),
-        state,
+
+    def refill(state: MOPOState) -> MOPOState:
+        state, rollout_metrics = rollout(state, batch.observations, rollout_key, config, max_action)
+        return state.replace(rollout_metrics=rollout_metrics)
+
+    state = jax.lax.cond(
+        state.step % config.rollout_interval == 0, refill, lambda s: s, state
     )
     state, metrics = sac.update(state, mixed_batch(state, batch, sample_key, config), sac_key,
                                 config.sac, max_action)  # fmt: skip
-    return state, {**metrics, **rollout_metrics, "model_buffer": state.buffer_count}
+    return state, {**metrics, **state.rollout_metrics, "model_buffer": state.buffer_count}
 
 
 ALGORITHMS = (
