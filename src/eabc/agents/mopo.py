@@ -213,7 +213,8 @@ def pretrain(state: MOPOState, data: Batch, key: jax.Array, config: MOPOConfig, 
     """Fit the dynamics ensemble to the (normalised) dataset once, before the policy loop."""
     model, elites, info = dynamics.fit(key, data, config.model, log=_log)
     _log(
-        f"dynamics: {info['model_epochs']} epochs, elites' held-out MSE "
+        f"dynamics: {info['model_epochs']} epochs, elites' held-out error "
+        f"{info['model_heldout_error']:.4f} (variance-normalised; predicting the mean: 1), MSE "
         f"{info['model_heldout_mse']:.4f} (predicting the mean: {info['model_heldout_mse_of_mean']:.4f})"
     )
     return state.replace(
@@ -321,9 +322,7 @@ def update(
         state, rollout_metrics = rollout(state, batch.observations, rollout_key, config, max_action)
         return state.replace(rollout_metrics=rollout_metrics)
 
-    state = jax.lax.cond(
-        state.step % config.rollout_interval == 0, refill, lambda s: s, state
-    )
+    state = jax.lax.cond(state.step % config.rollout_interval == 0, refill, lambda s: s, state)
     state, metrics = sac.update(state, mixed_batch(state, batch, sample_key, config), sac_key,
                                 config.sac, max_action)  # fmt: skip
     return state, {**metrics, **state.rollout_metrics, "model_buffer": state.buffer_count}
