@@ -61,7 +61,7 @@ def test_state_dict_names_fields_and_positions_and_restores_into_the_template():
 
 
 @pytest.mark.parametrize(("algo", "base"), [("td3bc", None), ("wpc", "td3bc"), ("cql", "sac"),
-                                          ("uwac", "bear")])  # fmt: skip
+                                          ("uwac", "bear"), ("mopo", "sac"), ("morel", "sac")])  # fmt: skip
 def test_find_reads_actor_and_step_wherever_the_state_keeps_them(algo, base):
     """A state that holds its base algorithm's state keeps ``actor`` and ``step`` there: the
     object delegates to it, and :func:`pytree.find` reaches them in the state dict."""

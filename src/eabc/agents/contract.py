@@ -76,7 +76,8 @@ class Algorithm:
     state_layout: int = 1
     """The layout of ``init``'s state in checkpoints, which record it: raise it when the state's
     entries move or are renamed, so that checkpoints of the old layout are refused with a message
-    that says so (2: wPC, CQL and UWAC, whose states came to hold their base's as one field)."""
+    that says so (2: wPC, CQL, UWAC, MOPO and MOReL, whose states came to hold their base's as one
+    field)."""
 
     @property
     def gaussian_actor(self) -> bool:

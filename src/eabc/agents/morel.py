@@ -95,6 +95,7 @@ def pretrain(state: MOPOState, data: Batch, key: jax.Array, config: MOReLConfig,
 
 ALGORITHMS = (
     # steps/s: a rough hint, excluding the one-off model fit (not benchmarked quiet yet).
+    # state_layout 2: MOPO's state, which holds the SAC state as one field
     Algorithm("morel", "MOReL", PRESETS["morel"], init, update, column=8, actor="tanh-gaussian",
-              pretrain=pretrain, resolve=resolve, steps_per_s=30.0),
+              pretrain=pretrain, resolve=resolve, steps_per_s=30.0, state_layout=2),
 )  # fmt: skip
