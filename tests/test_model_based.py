@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from handcalc import ACT, OBS, B, member
+from learning import MARGIN, late_gain
 
 from eabc.agents import dynamics, get_algorithm, mopo, morel
 from eabc.agents.common import Batch
@@ -280,6 +281,21 @@ def test_the_trained_model_is_saved_with_the_run_and_resumed(tmp_path, pendulum_
     )
 
 
-# Not here yet: a learning check. On Pendulum the model fits (held-out MSE 0.12-0.18 against 1.38
-# for the mean) but SAC on 95% model data scored -20 to -36 after 3,000 steps (untrained: -18),
-# not yet understood; issue 19 stays open until MOPO and MOReL pass tests/learning.py's check.
+# The learning check's settings, each for a reason seen on this data:
+# - SAC's temperature rate 3e-3, not 3e-4: Pendulum's rewards per step (-0.8 on average here) are a
+#   fraction of MuJoCo's, and from the initial temperature 1 at 3e-4 the entropy bonus outweighed
+#   them all run: Q values turned positive and the 256-256 policy settled at the random policy's
+#   score (0.5, 0.1, 1.3 at 3,000-4,000 steps);
+# - MOPO's own 256-256 actor and critics, not late_gain's 64-64: with 64-64 the evaluations swung
+#   by 40-100 points from one thousand steps to the next (-45, -25, 7, 61, -26, -39 over 6,000 steps)
+#   under every setting tried, with 256-256 they kept rising (-28, 30, 61, 41, 46, 73);
+# - the model buffer's own 200K: LEARNING's 20K keeps only the last ~80 steps' rollouts;
+# - 3 members of 64-64, at most 60 epochs: held-out MSE 0.04 against 1.38 for predicting the mean.
+LEARNING_CHECK = {**LEARNING, "model_max_epochs": 60, "buffer_capacity": 200_000,
+                  "alpha_lr": 3e-3, "hidden_dims": (256, 256)}  # fmt: skip
+
+
+@pytest.mark.parametrize("algo", ["mopo", "morel"])
+def test_mopo_and_morel_improve_on_the_untrained_policy(tmp_path, pendulum_dataset, algo):
+    untrained, late, evaluations = late_gain(tmp_path, pendulum_dataset, algo, LEARNING_CHECK)
+    assert late > untrained + MARGIN, (untrained, evaluations)
