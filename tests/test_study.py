@@ -100,7 +100,7 @@ def test_study_presets_follow_the_issue_protocol():
         ("td3bc", ()),
         ("eabc", ()),
         ("eabc", (("confidence_level", 1.0),)),
-        ("eabc-robust", ()),
+        ("eabc-ln", ()),
     }
     long = expand(PRESETS["study-1m"])
     assert {r.dataset for r in long} == {"halfcheetah-medium"}

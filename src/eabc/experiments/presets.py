@@ -76,14 +76,15 @@ PRESETS: dict[str, dict[str, Any]] = {
         "steps": 50_000,
         "train": STUDY_TRAIN,
     },
-    # Issue 14's confirmation: TD3+BC, published EABC, EABC at p = 1 and the recommended variant.
+    # Issue 14's confirmation: TD3+BC, published EABC, EABC at p = 1 and the recommended variant
+    # (eabc-ln: p = 1 on LayerNorm critics, chosen by the screen of 2026-12-02).
     "study": {
         "datasets": STUDY_DATASETS,
         "variants": [
             {"algo": "td3bc"},
             {"algo": "eabc"},
             {"algo": "eabc", "confidence_level": 1.0},
-            {"algo": "eabc-robust"},
+            {"algo": "eabc-ln"},
         ],
         "seeds": [0, 1, 2],
         "steps": 100_000,
@@ -92,7 +93,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     # Whether the short protocol's ranking holds at the paper's length.
     "study-1m": {
         "datasets": ["halfcheetah-medium"],
-        "variants": [{"algo": "td3bc"}, {"algo": "eabc"}, {"algo": "eabc-robust"}],
+        "variants": [{"algo": "td3bc"}, {"algo": "eabc"}, {"algo": "eabc-ln"}],
         "seeds": [0, 1, 2],
         "steps": 1_000_000,
         "train": STUDY_TRAIN,

@@ -40,7 +40,7 @@ class TrainConfig:
     dataset: str = "hopper-random"
     """A built-in name (hopper-random, ...), a .hdf5/.npz path, or minari:ID."""
     algo: str = "eabc"
-    """Algorithm: eabc, eabc-trust, eabc-robust, eabc-auto, eabc-quantile, td3bc, td3, bc, iql, cql, cql-lagrange, wpc,
+    """Algorithm: eabc, eabc-ln, eabc-trust, eabc-robust, eabc-auto, eabc-quantile, td3bc, td3, bc, iql, cql, cql-lagrange, wpc,
     sac-n, edac, edac-10, bear, uwac, mopo or morel."""
     seed: int = 0
     """Seeds network initialisation and batch sampling; evaluation uses seed + 100."""
