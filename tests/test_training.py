@@ -258,3 +258,33 @@ def test_fast_compiled_chunks_are_another_program_with_the_same_results(monkeypa
         assert chunks._PROGRAMS[fast][0]._cache_size() == before + 1  # compiled in this build
     for a, b in zip(jax.tree.leaves(results[False]), jax.tree.leaves(results[True]), strict=True):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-5)
+
+
+def test_two_resumes_within_one_second_keep_both_event_files(tmp_path, monkeypatch):
+    """Event files are named by the second they open in: a resume in the same second as the
+    previous writer must not truncate that writer's points (and its purge marker)."""
+    import tensorboardX.event_file_writer as event_file_writer  # noqa: PLC0415
+
+    from eabc.training.logger import RunLogger as Logger  # noqa: PLC0415
+
+    class Frozen:  # the module's clock stands still: every writer opens in the same second
+        @staticmethod
+        def time():
+            return 1_764_662_400.0
+
+    monkeypatch.setattr(event_file_writer, "time", Frozen)
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    first = Logger(run_dir, tensorboard=True)
+    for step in (100, 200, 300):
+        first.log({"step": step, "score": float(step)})
+    first.close()
+    resumed = Logger(run_dir, resume_step=200, tensorboard=True)  # 300 goes, 200 stays
+    resumed.log({"step": 300, "score": 301.0})
+    resumed.log({"step": 400, "score": 400.0})
+    resumed.close()
+    Logger(run_dir, resume_step=400, tensorboard=True).close()  # resuming the finished run
+    assert len(list((run_dir / "tb").glob("events.out.tfevents.*"))) == 3
+    assert_tensorboard_equals_log(run_dir)
+    points, _ = _tensorboard_points(run_dir)
+    assert points["score"] == [(100, 100.0), (200, 200.0), (300, 301.0), (400, 400.0)]

@@ -37,8 +37,15 @@ class RunLogger:
 
             # TensorBoard drops every event at or after purge_step: the rows after the checkpoint
             # go, the checkpoint's own row (kept in log.csv too) stays.
+            # Event files are named by the second they open in; two resumes within one second
+            # would share a name and the second would truncate the first's file (its points and
+            # its purge marker), so each writer's file also gets its place in the directory.
+            tb = Path(run_dir) / "tb"
+            order = len(list(tb.glob("events.out.tfevents.*"))) if tb.exists() else 0
             self.writer = SummaryWriter(
-                str(Path(run_dir) / "tb"), purge_step=resume_step + 1 if resume_step else None
+                str(tb),
+                purge_step=resume_step + 1 if resume_step else None,
+                filename_suffix=f".{order:04d}",
             )
             if not resume_step:
                 self._write_hparams(Path(run_dir))
