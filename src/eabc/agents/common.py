@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import jax
 import optax
 
@@ -24,3 +26,19 @@ def apply_gradients(tx: optax.GradientTransformation, grads, opt_state, params):
     """One optimiser step: ``(new params, new optimiser state)``."""
     updates, opt_state = tx.update(grads, opt_state, params)
     return optax.apply_updates(params, updates), opt_state
+
+
+class BuiltOn:
+    """For a state that holds its base algorithm's state in one field (wPC on TD3+BC's, CQL and
+    MOPO on SAC's, UWAC on BEAR's): the contract's ``actor`` and ``step`` are the base's. Set
+    ``BASE`` (a ``ClassVar``) to that field's name."""
+
+    BASE: ClassVar[str]
+
+    @property
+    def actor(self):
+        return getattr(self, self.BASE).actor
+
+    @property
+    def step(self) -> jax.Array:
+        return getattr(self, self.BASE).step

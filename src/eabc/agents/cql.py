@@ -19,6 +19,7 @@ authors' code and young-geng/JaxCQL, every loss is evaluated at the parameters b
 from __future__ import annotations
 
 import dataclasses
+from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -27,7 +28,7 @@ import optax
 
 from eabc import networks, pytree
 from eabc.agents import sac
-from eabc.agents.common import Batch, apply_gradients
+from eabc.agents.common import Batch, BuiltOn, apply_gradients
 from eabc.agents.contract import Algorithm
 
 """The actor outputs a tanh-Gaussian; its deterministic action is ``tanh(mean)``."""
@@ -89,20 +90,14 @@ PRESETS: dict[str, CQLConfig] = {
 
 
 @pytree.dataclass
-class CQLState:
+class CQLState(BuiltOn):
+    BASE: ClassVar[str] = "sac"
+
     sac: sac.SACState
     """SAC's actor, twin critics, target critics, temperature and optimisers."""
     log_alpha_prime: jax.Array
     """log(alpha'), only trained with ``lagrange``."""
     alpha_prime_opt: optax.OptState
-
-    @property
-    def actor(self) -> networks.Params:
-        return self.sac.actor
-
-    @property
-    def step(self) -> jax.Array:
-        return self.sac.step
 
 
 def _optimizers(config: CQLConfig) -> tuple[optax.GradientTransformation, ...]:

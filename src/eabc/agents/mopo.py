@@ -23,14 +23,14 @@ from __future__ import annotations
 
 import dataclasses
 import sys
-from typing import Any
+from typing import Any, ClassVar
 
 import jax
 import jax.numpy as jnp
 
-from eabc import networks, pytree
+from eabc import pytree
 from eabc.agents import dynamics, sac
-from eabc.agents.common import Batch
+from eabc.agents.common import Batch, BuiltOn
 from eabc.agents.contract import Algorithm
 from eabc.data import tasks
 
@@ -159,7 +159,9 @@ def resolve(config: MOPOConfig, dataset_name: str, steps: int, given: frozenset[
 
 
 @pytree.dataclass
-class MOPOState:
+class MOPOState(BuiltOn):
+    BASE: ClassVar[str] = "sac"
+
     sac: sac.SACState
     """SAC's actor, critics, target critics, temperature and optimisers."""
     model: dynamics.Params
@@ -178,14 +180,6 @@ class MOPOState:
     rollout_metrics: dict[str, jax.Array]
     """The latest refill's metrics (:func:`rollout`), which every step reports: a chunk's log
     row then shows their real values, not a fifth of them."""
-
-    @property
-    def actor(self) -> networks.Params:
-        return self.sac.actor
-
-    @property
-    def step(self) -> jax.Array:
-        return self.sac.step
 
 
 ROLLOUT_METRICS = ("rollout_penalty", "rollout_disagreement", "rollout_done")

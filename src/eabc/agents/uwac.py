@@ -19,6 +19,7 @@ code (apple/ml-uwac, ``rlkit/torch/sac/uwac_dropout.py`` and ``examples/UWAC_hdf
 from __future__ import annotations
 
 import dataclasses
+from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -26,7 +27,7 @@ import jax.numpy as jnp
 from eabc import networks, pytree
 from eabc.agents import bear
 from eabc.agents.bear import BEARState
-from eabc.agents.common import Batch
+from eabc.agents.common import Batch, BuiltOn
 from eabc.agents.contract import Algorithm
 
 """The actor outputs a tanh-Gaussian; its deterministic action is ``tanh(mean)``."""
@@ -95,7 +96,9 @@ PRESETS: dict[str, UWACConfig] = {"uwac": UWACConfig()}
 
 
 @pytree.dataclass
-class UWACState:
+class UWACState(BuiltOn):
+    BASE: ClassVar[str] = "bear"
+
     bear: BEARState
     """BEAR's actor, critics, VAE, multiplier, targets and optimisers, stepped by
     :func:`eabc.agents.bear.step`."""
@@ -103,14 +106,6 @@ class UWACState:
     """Power-iteration vectors of the critics' layers (``u{i}: [K, out]``)."""
     spectral_u_target: networks.Params
     """The target critics' own vectors (PyTorch keeps them as buffers, outside the Polyak copy)."""
-
-    @property
-    def actor(self) -> networks.Params:
-        return self.bear.actor
-
-    @property
-    def step(self) -> jax.Array:
-        return self.bear.step
 
 
 def init(key: jax.Array, obs_dim: int, act_dim: int, config: UWACConfig) -> UWACState:

@@ -11,13 +11,14 @@ smoothing, delayed actor, lambda normalisation) is TD3+BC's, shared with :mod:`e
 from __future__ import annotations
 
 import dataclasses
+from typing import ClassVar
 
 import jax
 import optax
 
 from eabc import networks, pytree
 from eabc.agents import eabc
-from eabc.agents.common import Batch, apply_gradients
+from eabc.agents.common import Batch, BuiltOn, apply_gradients
 from eabc.agents.contract import Algorithm
 
 
@@ -37,20 +38,14 @@ PRESETS = {"wpc": WPCConfig()}
 
 
 @pytree.dataclass
-class WPCState:
+class WPCState(BuiltOn):
+    BASE: ClassVar[str] = "td3bc"
+
     td3bc: eabc.EABCState
     """TD3+BC's actor, critics, targets and optimisers, trained by :mod:`eabc.agents.eabc`."""
     value: networks.Params
     """V(s)."""
     value_opt: optax.OptState
-
-    @property
-    def actor(self) -> networks.Params:
-        return self.td3bc.actor
-
-    @property
-    def step(self) -> jax.Array:
-        return self.td3bc.step
 
 
 def init(key: jax.Array, obs_dim: int, act_dim: int, config: WPCConfig) -> WPCState:
