@@ -364,3 +364,27 @@ def test_a_runs_speed_is_the_median_of_its_training_chunks(tmp_path):
     assert row["steps_per_s"] == 280.0
     table = tables.runtime_table(pd.DataFrame([row]))
     assert table.at["td3bc", "mean"] == pytest.approx(1e6 / 280.0 / 3600)
+
+
+def test_a_wide_legend_wraps_and_stays_inside_the_saved_image(tmp_path):
+    """Long variant labels used to run off both sides of the curves figure (one legend row)."""
+    from matplotlib.figure import Figure  # noqa: PLC0415
+
+    from eabc.experiments import figures  # noqa: PLC0415
+
+    labels = [f"EABC-auto critic_layer_norm=True independent_targets=True #{i}" for i in range(5)]
+    columns = figures.legend_columns(labels, 12.0)
+    assert 1 <= columns < len(labels)
+    assert figures.legend_columns(["BC", "TD3+BC"], 12.0) == 2
+    fig = Figure(figsize=(12.0, 4.0))
+    ax = fig.add_subplot()
+    lines = [ax.plot([0, 1], [i, i])[0] for i in range(len(labels))]
+    legend = fig.legend(lines, labels, loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=columns)
+    path = figures._save(fig, tmp_path / "wide.png")
+    renderer = fig.canvas.get_renderer() if hasattr(fig.canvas, "get_renderer") else None
+    box = legend.get_window_extent(renderer)
+    assert box.width <= fig.get_figwidth() * fig.dpi  # one figure's width, not wider
+    from PIL import Image  # noqa: PLC0415
+
+    with Image.open(path) as image:  # the saved canvas grew to hold the legend below the panels
+        assert image.height > 4.0 * figures.PRINT_DPI

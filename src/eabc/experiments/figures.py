@@ -69,14 +69,22 @@ PRINT_DPI = 300
 VECTOR_FORMATS = (".pdf", ".svg")
 
 
+def legend_columns(labels: list[str], width_inches: float, most: int = 6) -> int:
+    """Columns for a figure-wide legend whose entries fit the figure's width: about 11 characters
+    per inch at the default font size, plus room for each entry's line sample."""
+    widest = max((len(label) for label in labels), default=1) + 6
+    fits = int(width_inches * 11 // widest)
+    return max(1, min(most, len(labels), fits))
+
+
 def _save(fig, path: str | Path) -> Path:
     """The figure as ``path`` (PNG at print resolution) and as PDF and SVG beside it."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=PRINT_DPI)
+    fig.savefig(path, dpi=PRINT_DPI, bbox_inches="tight")  # nothing outside the canvas is lost
     for suffix in VECTOR_FORMATS:
         undated = {"Date": None} if suffix == ".svg" else {"CreationDate": None}  # reproducible
-        fig.savefig(path.with_suffix(suffix), metadata=undated)
+        fig.savefig(path.with_suffix(suffix), metadata=undated, bbox_inches="tight")
     return path
 
 
@@ -120,11 +128,13 @@ def _plot_curves(
         axes[0].set_axis_off()
     ordered = [k for k in keys if k in handles]
     if ordered:
+        labels = [names(k) for k in ordered]
         fig.legend(
             [handles[k] for k in ordered],
-            [names(k) for k in ordered],
-            loc="lower center",
-            ncol=min(6, len(ordered)),
+            labels,
+            loc="upper center",
+            bbox_to_anchor=(0.5, 0.0),  # below the panels; _save keeps it inside the image
+            ncol=legend_columns(labels, fig.get_figwidth()),
         )
     fig.suptitle(title)
     return _save(fig, path)
