@@ -204,7 +204,8 @@ PRESETS: dict[str, EABCConfig] = {
     # Automatic p as a trust region: p follows the policy's distance from the data's actions,
     # kept within twice what full cloning leaves over the first 5,000 steps, on LayerNorm critics
     # (every spread-ratio controller on hopper-medium kept the critics sound and still let the
-    # policy drift; the distance sees the drift itself).
+    # policy drift; the distance sees the drift itself). Screened 2026-12-02: it holds the distance
+    # but lost hopper-medium (22; 35 at 1x) and walker2d-medium (14 at 1x): not recommended.
     "eabc-trust": EABCConfig(
         bc_weight="auto",
         critic_layer_norm=True,
