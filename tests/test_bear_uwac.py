@@ -272,8 +272,62 @@ def test_dropout_critic_drops_hidden_units_and_rescales(batch):
     np.testing.assert_allclose(no_dropout, np_q(state.bear.critic, 2, s, a), rtol=1e-5)
 
 
+def test_per_pass_dropout_is_t_sampled_networks_shared_by_the_rows(batch):
+    t, rate = 6, 0.4  # two groups of three passes
+    config = uwac.UWACConfig(**SMALL, dropout_rate=rate)
+    state = uwac.init(jax.random.PRNGKey(0), OBS, ACT, config)
+    key = jax.random.PRNGKey(3)
+    got = uwac.dropout_passes(
+        state.bear.critic, batch.observations, batch.actions, key, rate, t
+    )  # [K, T, B]
+    x = np.concatenate(as64(batch.observations, batch.actions), -1)
+    keys = jax.random.split(key, 2)
+    masks = [np.asarray(jax.random.bernoulli(k, 1 - rate, (2, t, 8))) for k in keys]
+    for k in range(2):
+        p = {name: np.float64(v) for name, v in member(state.bear.critic, k).items()}
+        for i in range(t):
+            h = np.maximum(x @ p["w0"] + p["b0"], 0)
+            h = np.maximum(np.where(masks[0][k, i], h / (1 - rate), 0) @ p["w1"] + p["b1"], 0)
+            q = (np.where(masks[1][k, i], h / (1 - rate), 0) @ p["w2"] + p["b2"])[:, 0]
+            np.testing.assert_allclose(got[k, i], q, rtol=1e-5, atol=1e-6)
+    assert np.ptp(np.asarray(got), axis=1).min() > 0  # the passes differ
+
+
+def test_per_pass_and_per_row_masks_estimate_the_same_variance():
+    """Each row's T passes are independent either way: over many rows the two estimators'
+    variances agree, though each row's estimate differs."""
+    config = uwac.UWACConfig(hidden_dims=(32, 32), vae_hidden_dims=(8, 8), spectral_norm=False)
+    state = uwac.init(jax.random.PRNGKey(0), OBS, ACT, config)
+    rows = jax.random.normal(jax.random.PRNGKey(1), (400, OBS + ACT))
+    obs, act = rows[:, :OBS], jnp.tanh(rows[:, OBS:])
+    variances = {}
+    for masks in ("per-pass", "per-row"):
+        critics = uwac.DropoutCritics(dataclasses.replace(config, dropout_masks=masks))
+        means, var = zip(
+            *(
+                critics.estimate(state.bear.critic, obs, act, jax.random.PRNGKey(s))
+                for s in range(25)
+            ),
+            strict=True,
+        )
+        variances[masks] = np.mean(var)
+    assert variances["per-pass"] > 0, variances
+    np.testing.assert_allclose(variances["per-pass"], variances["per-row"], rtol=0.1)
+
+
+def test_dropout_masks_must_be_named():
+    with pytest.raises(ValueError, match="per-pass"):
+        uwac.UWACConfig(dropout_masks="per-batch")
+
+
 def test_mc_estimate_is_the_mean_and_summed_variance_over_dropout_passes(batch):
-    config = uwac.UWACConfig(**SMALL, dropout_rate=0.3, num_dropout_samples=6, spectral_norm=False)
+    config = uwac.UWACConfig(
+        **SMALL,
+        dropout_rate=0.3,
+        num_dropout_samples=6,
+        spectral_norm=False,
+        dropout_masks="per-row",
+    )
     state = uwac.init(jax.random.PRNGKey(0), OBS, ACT, config)
     critics = uwac.DropoutCritics(config)
     key = jax.random.PRNGKey(4)
@@ -403,3 +457,18 @@ def test_bear_and_uwac_improve_on_the_untrained_policy(tmp_path, pendulum_datase
         tmp_path, pendulum_dataset, algo, LEARNING_OVERRIDES[algo]
     )
     assert late > untrained + MARGIN, (untrained, evaluations)
+
+
+def test_uwac_policy_ignores_the_critics_during_the_warmup(batch):
+    """Before ``warmup_steps`` the actor follows the MMD alone, so the number of dropout passes
+    cannot change it (why the README's 20K-step UWAC run may use T = 10)."""
+    actors, critics = [], []
+    for passes in (2, 4):
+        config = uwac.UWACConfig(**SMALL, num_dropout_samples=passes, warmup_steps=10)
+        state = uwac.init(jax.random.PRNGKey(0), OBS, ACT, config)
+        for i in range(3):
+            state, _ = uwac_update(state, batch, jax.random.PRNGKey(i), config, 1.0)
+        actors.append(state.bear.actor)
+        critics.append(state.bear.critic)
+    jax.tree.map(np.testing.assert_array_equal, *actors)
+    assert not np.allclose(critics[0]["w1"], critics[1]["w1"])  # T does change the critics
