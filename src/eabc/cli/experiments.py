@@ -100,6 +100,10 @@ class Report:
     root: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="ROOT")]
     out: str | None = None
     """Output directory (default ROOT/report)."""
+    baseline: str | None = None
+    """Label every other algorithm is compared with, dataset by dataset, in comparison.md
+    (mean with its 95% bootstrap interval: above, below or tie); default td3bc when the sweep
+    ran it. A label is the algorithm plus its variant, as in the tables (`eabc p=1.0`)."""
 
 
 def sweep_spec(cmd: Sweep) -> dict:
@@ -212,5 +216,5 @@ def run_report(cmd: Report) -> None:
     if runs.empty:
         raise ValueError(f"no runs under {cmd.root}")
     out = Path(cmd.out) if cmd.out else Path(cmd.root) / "report"
-    for name, path in report.write_report(runs, evaluations, out).items():
+    for name, path in report.write_report(runs, evaluations, out, cmd.baseline).items():
         print(f"{name}: {path}")

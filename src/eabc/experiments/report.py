@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from eabc.experiments import compare
 from eabc.experiments.labels import ABLATION_PARAMETERS, display_name
 from eabc.experiments.tables import (
     AVERAGE,
@@ -89,14 +90,18 @@ RUNTIME_NOTE = (
 
 
 def write_report(
-    runs: pd.DataFrame, evaluations: pd.DataFrame, out_dir: str | Path
+    runs: pd.DataFrame,
+    evaluations: pd.DataFrame,
+    out_dir: str | Path,
+    baseline: str | None = None,
 ) -> dict[str, Path]:
     """Every table and figure into ``out_dir``, and ``report.md`` that shows them all.
 
     Writes ``table.{md,html,tex}``, ``aggregate.md``, ``curves.png``, ``profiles.png``,
     ``runtime.png``, ``ablation_PARAMETER.png`` for each parameter that some algorithm's runs vary
     (EABC's first; every figure also as ``.pdf`` and ``.svg``), ``report.md`` and ``report.html``
-    (a standalone page). Returns the paths by file name.
+    (a standalone page), and ``comparison.md``: every label against ``baseline`` (default
+    TD3+BC when the sweep ran it), dataset by dataset. Returns the paths by file name.
     """
     from eabc.experiments import figures  # noqa: PLC0415 (figures imports this module)
 
@@ -118,6 +123,16 @@ def write_report(
     write("table.tex", to_latex(table))
     aggregate = aggregate_to_markdown(aggregate_table(runs))
     write("aggregate.md", aggregate)
+    baseline = baseline or compare.default_baseline(runs)
+    comparison = []
+    if baseline is not None:
+        text = compare.comparison_to_markdown(compare.comparison_table(runs, baseline), baseline)
+        write("comparison.md", text)
+        comparison = [
+            f"## Against {display_name(baseline)}, dataset by dataset\n",
+            "Also as [comparison.md](comparison.md).\n",
+            text,
+        ]
     paths["curves.png"] = figures.plot_learning_curves(runs, evaluations, out / "curves.png")
     paths["profiles.png"] = figures.plot_performance_profiles(runs, out / "profiles.png")
     ablations = []
@@ -159,6 +174,7 @@ def write_report(
         "PDF and SVG.\n",
         *([_warning(thin)] if thin else []),
         to_markdown(table),
+        *comparison,
         "## Stability: where the critics fail\n",
         "Per dataset and algorithm: runs whose mean Q left the range the rewards allow, the "
         "first such step, the largest mean Q (median over runs), the ensemble's spread at the "

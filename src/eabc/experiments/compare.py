@@ -1,0 +1,141 @@
+"""Every algorithm against one baseline, dataset by dataset: is it above, below, or within noise?
+
+Issue 14 asks of a candidate that "at 100K steps it is not below TD3+BC on any of the five datasets
+(beyond seed noise: its 95% bootstrap interval reaches TD3+BC's mean) and above it on average".
+:func:`comparison_table` answers exactly that for every label of a sweep:
+
+- per dataset, the label's mean final score over its seeds and the 95% percentile bootstrap
+  interval of that mean (seeds resampled with replacement), against the baseline's mean there;
+  the verdict is ``above`` when the interval lies above the baseline's mean, ``below`` when it lies
+  under it, ``tie`` when it reaches it, and ``-`` with fewer than 2 runs (no interval);
+- ``Average``: over the datasets both were run on, the label's mean of per-dataset means with a
+  stratified-bootstrap interval (each dataset's seeds resampled on their own), against the
+  baseline's mean of per-dataset means on the same datasets.
+
+The baseline's own seed noise is not in the interval: the question is whether the candidate's
+interval reaches the baseline's point estimate, as the issue puts it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from eabc.experiments.labels import dataset_names, display_name, labelled, ordered_labels
+from eabc.experiments.stats import stratified_bootstrap_ci
+
+AVERAGE = "Average"
+COLUMNS = ["runs", "mean", "low", "high", "baseline_runs", "baseline_mean", "difference", "verdict"]
+
+
+def _verdict(low: float, high: float, reference: float, runs: int) -> str:
+    if runs < 2 or not np.isfinite(reference):
+        return "-"
+    if low > reference:
+        return "above"
+    if high < reference:
+        return "below"
+    return "tie"
+
+
+def _mean_of_means(draws: list[np.ndarray]) -> np.ndarray:
+    """Mean over datasets of each dataset's mean, for every bootstrap resample at once."""
+    return np.mean([d.mean(axis=-1) for d in draws], axis=0)
+
+
+def comparison_table(
+    runs: pd.DataFrame,
+    baseline: str,
+    metric: str = "final_score",
+    reps: int = 2000,
+    alpha: float = 0.05,
+    seed: int = 0,
+) -> pd.DataFrame:
+    """One row per (label, dataset) for every label but ``baseline``, plus each label's
+    ``Average`` row; columns :data:`COLUMNS`. Raises ``ValueError`` when no run has the baseline's
+    label (the message lists the labels there are)."""
+    runs = labelled(runs)
+    runs = runs[np.isfinite(runs[metric].astype(float))]
+    labels = ordered_labels(runs)
+    if baseline not in labels:
+        raise ValueError(
+            f"no finished run is labelled {baseline!r}; the labels are: {', '.join(labels)}"
+        )
+    scores = {
+        (label, dataset): group[metric].to_numpy(dtype=float)
+        for (label, dataset), group in runs.groupby(["label", "dataset"])
+    }
+    rows = []
+    for label in labels:
+        if label == baseline:
+            continue
+        mine = [d for d in dataset_names(runs) if (label, d) in scores]
+        shared = [d for d in mine if (baseline, d) in scores]
+        for dataset in mine:
+            values = scores[(label, dataset)]
+            reference = scores.get((baseline, dataset), np.array([]))
+            low, high = stratified_bootstrap_ci(values, np.mean, reps, alpha, seed)
+            rows.append(_row(label, dataset, values.size, values.mean(), low, high, reference))
+        if len(shared) > 1:
+            per_task = [scores[(label, d)] for d in shared]
+            low, high = stratified_bootstrap_ci(per_task, _mean_of_means, reps, alpha, seed, True)
+            reference = np.array([scores[(baseline, d)].mean() for d in shared])
+            mean = float(np.mean([t.mean() for t in per_task]))
+            fewest = min(t.size for t in per_task)  # the verdict needs an interval on every dataset
+            row = _row(label, AVERAGE, fewest, mean, low, high, reference)
+            row["runs"] = sum(t.size for t in per_task)
+            row["baseline_runs"] = sum(scores[(baseline, d)].size for d in shared)
+            rows.append(row)
+    frame = pd.DataFrame(rows, columns=["label", "dataset", *COLUMNS])
+    return frame.set_index(["label", "dataset"])
+
+
+def _row(label, dataset, size, mean, low, high, reference: np.ndarray) -> dict:
+    baseline_mean = float(reference.mean()) if reference.size else float("nan")
+    return {
+        "label": label,
+        "dataset": dataset,
+        "runs": int(size),
+        "mean": float(mean),
+        "low": float(low),
+        "high": float(high),
+        "baseline_runs": int(reference.size),
+        "baseline_mean": baseline_mean,
+        "difference": float(mean) - baseline_mean,
+        "verdict": _verdict(float(low), float(high), baseline_mean, int(size)),
+    }
+
+
+def comparison_to_markdown(table: pd.DataFrame, baseline: str, alpha: float = 0.05) -> str:
+    """The comparison as Markdown, one block per label."""
+    name = display_name(baseline)
+    level = f"{100 * (1 - alpha):g}%"
+    lines = [
+        f"Each algorithm against {name}: its mean final score over seeds with the {level} "
+        f"bootstrap interval of that mean, {name}'s mean, the difference, and whether the "
+        f"interval lies above {name}'s mean, below it, or reaches it (tie; `-`: one run, no "
+        "interval). Average: mean of the per-dataset means over the datasets both ran, with a "
+        "stratified-bootstrap interval.\n",
+        f"| Algorithm | Dataset | Runs | Mean [{level} CI] | {name} (runs) | Difference | Verdict |",
+        "|---|---|---:|:---:|:---:|---:|:---:|",
+    ]
+    for (label, dataset), row in table.iterrows():
+        reference = (
+            f"{row['baseline_mean']:.1f} ({int(row['baseline_runs'])})"
+            if np.isfinite(row["baseline_mean"])
+            else "-"
+        )
+        difference = f"{row['difference']:+.1f}" if np.isfinite(row["difference"]) else "-"
+        dataset_cell = f"**{dataset}**" if dataset == AVERAGE else dataset
+        lines.append(
+            f"| {display_name(label)} | {dataset_cell} | {int(row['runs'])} | "
+            f"{row['mean']:.1f} [{row['low']:.1f}, {row['high']:.1f}] | {reference} | "
+            f"{difference} | {row['verdict']} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def default_baseline(runs: pd.DataFrame) -> str | None:
+    """TD3+BC when the sweep ran it (the study's reference), else none."""
+    labels = ordered_labels(labelled(runs)) if len(runs) else []
+    return "td3bc" if "td3bc" in labels else None
