@@ -67,16 +67,22 @@ def test_results_on_a_missing_or_empty_root_say_so_in_one_line(tmp_path, capsys)
 
 
 def test_a_missing_extra_is_one_line_that_names_it(monkeypatch, pendulum_dataset):
+    from eabc.data.d3rlpy_export import to_d3rlpy  # noqa: PLC0415
     from eabc.data.dataset import DatasetError  # noqa: PLC0415
     from eabc.data.loaders import export_minari  # noqa: PLC0415
     from eabc.experiments import sweep  # noqa: PLC0415
 
     monkeypatch.setitem(sys.modules, "ray", None)  # as if not installed
     monkeypatch.setitem(sys.modules, "minari", None)
+    monkeypatch.setitem(sys.modules, "d3rlpy", None)
     with pytest.raises(RuntimeError, match=r"pip install 'eabc\[ray\]'"):
         sweep.run_ray([], "root")
     with pytest.raises(DatasetError, match=r"pip install 'eabc\[minari\]'"):
         export_minari(pendulum_dataset, "test/pendulum/x-v0")
+    with pytest.raises(DatasetError, match=r"pip install 'eabc\[d3rlpy\]'"):
+        to_d3rlpy(pendulum_dataset)
+    with pytest.raises(SystemExit, match=r"^error: exporting to d3rlpy needs .*eabc\[d3rlpy\]'$"):
+        main(["data", "export", "hopper-random", "--d3rlpy", "x.h5"])  # before making the data
 
 
 def test_output_piped_into_a_reader_that_stops_early_ends_quietly(tmp_path):

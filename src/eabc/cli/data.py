@@ -96,16 +96,20 @@ def run_zoo(cmd: ZooBuild | ZooPack) -> None:
 
 @dataclasses.dataclass(frozen=True)
 class DataExport:
-    """Export a dataset to the local Minari path, for d3rlpy, CORL and other Minari readers."""
+    """Export a dataset to the local Minari path (CORL and other Minari readers) or, with
+    --d3rlpy PATH, as d3rlpy's own dataset file."""
 
     name: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="NAME")]
     """A built-in name (made first if needed), a file path or minari:ID."""
     minari: bool = True
-    """Export as a Minari dataset (the only format for now)."""
+    """Export as a Minari dataset (the default; --d3rlpy writes d3rlpy's file instead)."""
     dataset_id: str | None = None
     """The Minari id (default eabc/ENV/KIND-v0, e.g. eabc/hopper/medium-v0)."""
+    d3rlpy: Annotated[str | None, tyro.conf.arg(metavar="PATH")] = None
+    """Write d3rlpy's MDPDataset (continuous actions) to this HDF5 file instead; read it with
+    d3rlpy.dataset.ReplayBuffer.load(f, d3rlpy.dataset.InfiniteBuffer())."""
     force: bool = False
-    """Replace an existing Minari dataset of that id."""
+    """Replace an existing Minari dataset of that id, or the --d3rlpy file."""
     cache_dir: str | None = None
     """Cache directory (default $EABC_CACHE_DIR or ~/.cache/eabc)."""
 
@@ -138,6 +142,12 @@ def run_data(cmd: DataMake | DataInfo | DataList | DataExport) -> None:
                 f"{name:26s} {info['transitions']:11d} {info['episodes']:8d} {spread:>17s} "
                 f"{info['normalized_return']:6.1f} {level:5.0f}  {path}"
             )
+    elif isinstance(cmd, DataExport) and cmd.d3rlpy is not None:
+        from eabc.data import d3rlpy_export  # noqa: PLC0415
+
+        d3rlpy_export.check_target(cmd.d3rlpy, cmd.force)  # before a dataset is made
+        dataset = sources.load_dataset(cmd.name, cmd.cache_dir)
+        print(d3rlpy_export.export_d3rlpy(dataset, cmd.d3rlpy, overwrite=cmd.force))
     elif isinstance(cmd, DataExport):
         dataset = sources.load_dataset(cmd.name, cmd.cache_dir)
         dataset_id = cmd.dataset_id or loaders.minari_id(dataset.name)
