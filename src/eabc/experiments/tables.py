@@ -72,12 +72,18 @@ def score_table(runs: pd.DataFrame, metric: str = "final_score") -> pd.DataFrame
 
 
 def _cells(table: pd.DataFrame, pm: str, missing: str) -> list[tuple[str, list[tuple[str, bool]]]]:
-    """Each row's name and its cells as ``(text, is_best)``; best = highest mean as displayed."""
+    """Each row's name and its cells as ``(text, is_best)``; best = highest mean as displayed.
+
+    In the Average row, a column that lacks some dataset is averaged over fewer datasets, so it
+    says over how many (``(3/5)``) and is never marked best."""
     mean = table.xs("mean", axis=1, level="stat")
     std = table.xs("std", axis=1, level="stat")
+    datasets = mean.drop(index=AVERAGE, errors="ignore")
+    covered = datasets.notna().sum(axis=0)
     rows = []
     for name in mean.index:
-        shown = {c: float(f"{mean.at[name, c]:.1f}") for c in mean.columns}
+        partial = {c for c in mean.columns if name == AVERAGE and covered[c] < len(datasets)}
+        shown = {c: float(f"{mean.at[name, c]:.1f}") for c in mean.columns if c not in partial}
         finite = [v for v in shown.values() if math.isfinite(v)]
         best = max(finite) if finite else math.nan
         cells = []
@@ -87,6 +93,9 @@ def _cells(table: pd.DataFrame, pm: str, missing: str) -> list[tuple[str, list[t
                 cells.append((missing, False))
                 continue
             text = f"{m:.1f}" + (f" {pm} {s:.1f}" if math.isfinite(s) else "")
+            if column in partial:
+                cells.append((f"{text} ({covered[column]}/{len(datasets)})", False))
+                continue
             cells.append((text, shown[column] == best))
         rows.append((str(name), cells))
     return rows
