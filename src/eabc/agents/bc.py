@@ -58,4 +58,4 @@ def update(
     return BCState(actor, actor_opt, state.step + 1), metrics
 
 
-ALGORITHMS = (Algorithm("bc", "BC", PRESETS["bc"], init, update, column=0, steps_per_s=1035.0),)
+ALGORITHMS = (Algorithm("bc", "BC", PRESETS["bc"], init, update, column=0, steps_per_s=2319.0),)

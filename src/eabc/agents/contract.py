@@ -60,7 +60,7 @@ class Algorithm:
     """Metrics averaged over every step of a chunk (see :data:`CRITIC_METRICS`)."""
     steps_per_s: float = 60.0
     """A cost hint for sweeps: steps/s of the preset on one process of the 2-core reference
-    machine (``benchmarks/algorithms.py``), hopper's shapes."""
+    machine (``benchmarks/algorithms.py``: a quiet 2-core Zen 5, 2026-12-02), hopper's shapes."""
     cost: Callable[[Any], float] | None = None
     """``cost(config)``: how many times slower than the preset these settings are (e.g. K / 10)."""
     short_names: Mapping[str, str] = dataclasses.field(default_factory=lambda: dict(SHORT_NAMES))

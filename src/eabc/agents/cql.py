@@ -247,7 +247,7 @@ def update(
 ALGORITHMS = (
     # state_layout 2: the SAC state as one field
     Algorithm("cql", "CQL", PRESETS["cql"], init, update, column=3, actor="tanh-gaussian",
-              steps_per_s=15.7, state_layout=2),
+              steps_per_s=34.5, state_layout=2),
     Algorithm("cql-lagrange", "CQL-Lagrange", PRESETS["cql-lagrange"], init, update, column=3.5,
-              actor="tanh-gaussian", steps_per_s=16.5, state_layout=2),
+              actor="tanh-gaussian", steps_per_s=37.0, state_layout=2),
 )  # fmt: skip

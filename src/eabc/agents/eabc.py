@@ -560,22 +560,23 @@ _FAMILY = {
     "report_settings": ("num_critics", "confidence_level", "pessimism"),
     "cli_flags": ("confidence_level", "num_critics", "pessimism", "alpha"),
 }
+# steps/s: benchmarks/algorithms.py on a quiet 2-core Zen 5 (2026-12-02), hopper shapes.
 ALGORITHMS = (
-    Algorithm("eabc", "EABC", PRESETS["eabc"], init, update, column=13, steps_per_s=67.0,
+    Algorithm("eabc", "EABC", PRESETS["eabc"], init, update, column=13, steps_per_s=151.0,
               cost=_ensemble_cost(10), **_FAMILY),
-    Algorithm("td3bc", "TD3+BC", PRESETS["td3bc"], init, update, column=2, steps_per_s=289.0,
+    Algorithm("td3bc", "TD3+BC", PRESETS["td3bc"], init, update, column=2, steps_per_s=620.0,
               cost=_ensemble_cost(2), **_FAMILY),
-    Algorithm("td3", "TD3", PRESETS["td3"], init, update, column=1, steps_per_s=285.0,
+    Algorithm("td3", "TD3", PRESETS["td3"], init, update, column=1, steps_per_s=653.0,
               cost=_ensemble_cost(2), **_FAMILY),
     *(
-        Algorithm(name, display, PRESETS[name], init, update, column=column, steps_per_s=60.0,
+        Algorithm(name, display, PRESETS[name], init, update, column=column, steps_per_s=speed,
                   cost=_ensemble_cost(10), **_FAMILY)
-        for name, display, column in (
-            ("eabc-ln", "EABC-LN", 13.5),
-            ("eabc-quantile", "EABC-quantile", 14),
-            ("eabc-auto", "EABC-auto", 15),
-            ("eabc-robust", "EABC-robust", 16),
-            ("eabc-trust", "EABC-trust", 17),
+        for name, display, column, speed in (
+            ("eabc-ln", "EABC-LN", 13.5, 80.4),
+            ("eabc-quantile", "EABC-quantile", 14, 106.0),
+            ("eabc-auto", "EABC-auto", 15, 110.0),
+            ("eabc-robust", "EABC-robust", 16, 103.0),
+            ("eabc-trust", "EABC-trust", 17, 107.0),
         )
     ),
 )  # fmt: skip

@@ -235,6 +235,6 @@ def resolve(
 ALGORITHMS = (
     Algorithm(
         "iql", "IQL", PRESETS["iql"], init, update, column=4,
-        preprocess=preprocess, resolve=resolve, steps_per_s=227.0,
+        preprocess=preprocess, resolve=resolve, steps_per_s=523.0,
     ),
 )  # fmt: skip

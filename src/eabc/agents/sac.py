@@ -223,12 +223,12 @@ def _critic_cost(reference: int):
 
 ALGORITHMS = (
     Algorithm("sac-n", "SAC-N", PRESETS["sac-n"], init, update, column=6, actor="tanh-gaussian",
-              steps_per_s=56.0, cost=_critic_cost(10),
+              steps_per_s=129.0, cost=_critic_cost(10),
               report_settings=("num_critics",), cli_flags=("num_critics",)),
     Algorithm("edac", "EDAC", PRESETS["edac"], init, update, column=11, actor="tanh-gaussian",
-              steps_per_s=5.6, cost=_critic_cost(50),
+              steps_per_s=8.8, cost=_critic_cost(50),
               report_settings=("num_critics",), cli_flags=("num_critics",)),
     Algorithm("edac-10", "EDAC-10", PRESETS["edac-10"], init, update, column=12, actor="tanh-gaussian",
-              steps_per_s=33.7, cost=_critic_cost(10),
+              steps_per_s=68.0, cost=_critic_cost(10),
               report_settings=("num_critics",), cli_flags=("num_critics",)),
 )  # fmt: skip

@@ -279,5 +279,5 @@ ALGORITHMS = (
     # steps/s: benchmarks/algorithms.py on a quiet 2-core Zen 5 (per-pass masks, T = 100).
     # state_layout 2: the BEAR state as one field
     Algorithm("uwac", "UWAC", PRESETS["uwac"], init, update, column=10, actor="tanh-gaussian",
-              steps_per_s=2.7, state_layout=2),
+              steps_per_s=3.2, state_layout=2),
 )  # fmt: skip

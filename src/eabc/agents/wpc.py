@@ -109,7 +109,7 @@ def update(
 
 ALGORITHMS = (
     Algorithm(
-        "wpc", "wPC", PRESETS["wpc"], init, update, column=5, steps_per_s=209.0,
+        "wpc", "wPC", PRESETS["wpc"], init, update, column=5, steps_per_s=452.0,
         cost=lambda config: config.num_critics / 2, report_settings=("num_critics",), cli_flags=("num_critics", "alpha"),
         state_layout=2,  # 2: the TD3+BC state as one field
     ),
