@@ -281,6 +281,30 @@ def test_the_trained_model_is_saved_with_the_run_and_resumed(tmp_path, pendulum_
     )
 
 
+def test_a_run_killed_after_its_model_fit_resumes_with_the_fitted_model(tmp_path, pendulum_dataset):
+    """The fit can take an hour on hopper: start() checkpoints it at step 0, so a run killed
+    before its first training checkpoint does not fit again, and trains as an uninterrupted one."""
+    config = trainer.TrainConfig(algo="mopo", steps=100, log_interval=100, eval_interval=100,
+                                 checkpoint_interval=100, eval_episodes=1, env="Pendulum-v1")  # fmt: skip
+    overrides = {**LEARNING, "hidden_dims": (8, 8), "model_max_epochs": 2}
+    run = trainer.start(config, tmp_path / "killed", overrides, pendulum_dataset)
+    fitted = np.asarray(run.state["agent"].model["net"]["w1"])
+    run.lock.release()  # killed here, before any training step
+    resumed = trainer.resume(tmp_path / "killed", pendulum_dataset)
+    assert resumed.step == 0
+    np.testing.assert_array_equal(resumed.state["agent"].model["net"]["w1"], fitted)
+    trainer.train(resumed, progress=False)
+    whole = trainer.start(config, tmp_path / "whole", overrides, pendulum_dataset)
+    trainer.train(whole, progress=False)
+    for name in ("log.csv", "summary.json"):
+        killed_rows = (tmp_path / "killed" / name).read_text().splitlines()
+        whole_rows = (tmp_path / "whole" / name).read_text().splitlines()
+        assert len(killed_rows) == len(whole_rows)
+    jax.tree.map(
+        np.testing.assert_array_equal, resumed.state["agent"].sac, whole.state["agent"].sac
+    )
+
+
 # The learning check's settings, each for a reason seen on this data:
 # - SAC's temperature rate 3e-3, not 3e-4: Pendulum's rewards per step (-0.8 on average here) are a
 #   fraction of MuJoCo's, and from the initial temperature 1 at 3e-4 the entropy bonus outweighed

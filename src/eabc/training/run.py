@@ -149,6 +149,8 @@ def start(
             "max_action": run.max_action,
         },
     )
+    if run.algorithm.pretrain is not None:  # a killed run resumes with what was fitted (hours)
+        checkpoint.save(run_dir, run.state, run.algorithm.state_layout)
     return run
 
 
