@@ -238,12 +238,11 @@ class DropoutCritics(bear.Critics):
     def _mc(self, net, obs, actions, key):
         t, size, rate = self.config.num_dropout_samples, obs.shape[0], self.config.dropout_rate
         if self.config.dropout_masks == "per-pass":
-            q = dropout_passes(net, obs, actions, key, rate, t)  # [K, T, B]
-            return q.mean(axis=1), q.var(axis=1, ddof=1).sum(axis=0)
-        q = dropout_critic_apply(
-            net, jnp.tile(obs, (t, 1)), jnp.tile(actions, (t, 1)), key, rate
-        ).reshape(-1, t, size)  # [K, T, B]
-        return q.mean(axis=1), q.var(axis=1, ddof=1).sum(axis=0)
+            q = dropout_passes(net, obs, actions, key, rate, t)
+        else:
+            tiled = jnp.tile(obs, (t, 1)), jnp.tile(actions, (t, 1))
+            q = dropout_critic_apply(net, *tiled, key, rate).reshape(-1, t, size)
+        return q.mean(axis=1), q.var(axis=1, ddof=1).sum(axis=0)  # q: [K, T, B]
 
     def estimate(self, critic, obs, actions, key):
         return self._mc(self._net(critic, self.u), obs, actions, key)

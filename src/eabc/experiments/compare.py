@@ -23,8 +23,8 @@ import pandas as pd
 
 from eabc.experiments.labels import dataset_names, display_name, labelled, ordered_labels
 from eabc.experiments.stats import stratified_bootstrap_ci
+from eabc.experiments.tables import AVERAGE
 
-AVERAGE = "Average"
 COLUMNS = ["runs", "mean", "low", "high", "baseline_runs", "baseline_mean", "difference", "verdict"]
 
 
@@ -75,34 +75,39 @@ def comparison_table(
             values = scores[(label, dataset)]
             reference = scores.get((baseline, dataset), np.array([]))
             low, high = stratified_bootstrap_ci(values, np.mean, reps, alpha, seed)
-            rows.append(_row(label, dataset, values.size, values.mean(), low, high, reference))
+            baseline_mean = reference.mean() if reference.size else np.nan
+            rows.append(
+                _row(label, dataset, values.mean(), low, high, values.size, values.size,
+                     baseline_mean, reference.size)
+            )  # fmt: skip
         if len(shared) > 1:
             per_task = [scores[(label, d)] for d in shared]
             low, high = stratified_bootstrap_ci(per_task, _mean_of_means, reps, alpha, seed, True)
-            reference = np.array([scores[(baseline, d)].mean() for d in shared])
-            mean = float(np.mean([t.mean() for t in per_task]))
-            fewest = min(t.size for t in per_task)  # the verdict needs an interval on every dataset
-            row = _row(label, AVERAGE, fewest, mean, low, high, reference)
-            row["runs"] = sum(t.size for t in per_task)
-            row["baseline_runs"] = sum(scores[(baseline, d)].size for d in shared)
-            rows.append(row)
+            references = [scores[(baseline, d)] for d in shared]
+            rows.append(
+                _row(label, AVERAGE, np.mean([t.mean() for t in per_task]), low, high,
+                     sum(t.size for t in per_task),
+                     min(t.size for t in per_task),  # a verdict needs an interval on every dataset
+                     np.mean([r.mean() for r in references]), sum(r.size for r in references))
+            )  # fmt: skip
     frame = pd.DataFrame(rows, columns=["label", "dataset", *COLUMNS])
     return frame.set_index(["label", "dataset"])
 
 
-def _row(label, dataset, size, mean, low, high, reference: np.ndarray) -> dict:
-    baseline_mean = float(reference.mean()) if reference.size else float("nan")
+def _row(label, dataset, mean, low, high, runs, fewest, baseline_mean, baseline_runs) -> dict:
+    """One row; ``fewest``: the fewest runs behind the interval (under 2: no verdict)."""
+    mean, low, high, baseline_mean = (float(v) for v in (mean, low, high, baseline_mean))
     return {
         "label": label,
         "dataset": dataset,
-        "runs": int(size),
-        "mean": float(mean),
-        "low": float(low),
-        "high": float(high),
-        "baseline_runs": int(reference.size),
+        "runs": int(runs),
+        "mean": mean,
+        "low": low,
+        "high": high,
+        "baseline_runs": int(baseline_runs),
         "baseline_mean": baseline_mean,
-        "difference": float(mean) - baseline_mean,
-        "verdict": _verdict(float(low), float(high), baseline_mean, int(size)),
+        "difference": mean - baseline_mean,
+        "verdict": _verdict(low, high, baseline_mean, int(fewest)),
     }
 
 
