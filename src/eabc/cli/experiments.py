@@ -104,6 +104,11 @@ class Report:
     """Label every other algorithm is compared with, dataset by dataset, in comparison.md
     (mean with its 95% bootstrap interval: above, below or tie); default td3bc when the sweep
     ran it. A label is the algorithm plus its variant, as in the tables (`eabc p=1.0`)."""
+    include: tuple[str, ...] = ()
+    """Earlier reports (directories `eabc report` wrote, e.g. docs/results/study) whose runs join
+    ROOT's, so that runs measured on a machine since lost still count. A run in both counts once:
+    the copy that trained more steps, ROOT's on a tie. report.md says how many runs came from
+    where."""
 
 
 def sweep_spec(cmd: Sweep) -> dict:
@@ -208,11 +213,18 @@ def run_results(cmd: Results) -> None:
 def run_report(cmd: Report) -> None:
     from eabc.experiments import report, results  # noqa: PLC0415
 
-    runs, evaluations = results.collect(cmd.root)
+    if not Path(cmd.root).is_dir() and not cmd.include:
+        raise FileNotFoundError(f"{cmd.root} does not exist; give a sweep root or a run directory")
+    runs, evaluations = results.collect(cmd.root)  # nothing yet on a new machine: --include
     broken = runs[runs["status"] == "broken"]
     for why in broken["config"]:
         print(f"leaving out a broken run: {why}", file=sys.stderr)
     runs = runs[runs["status"] != "broken"]
+    if cmd.include:
+        archives = [results.read_archive(d) for d in cmd.include]
+        runs, evaluations = results.merge(
+            (runs, evaluations), *archives, live_source=str(cmd.root)
+        )
     if runs.empty:
         raise ValueError(f"no runs under {cmd.root}")
     out = Path(cmd.out) if cmd.out else Path(cmd.root) / "report"

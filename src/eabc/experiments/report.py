@@ -160,6 +160,14 @@ def write_report(
         steps = partial["steps"] if "steps" in partial else pd.Series("?", index=partial.index)
         listed = ", ".join(f"`{r}` ({s} steps)" for r, s in zip(partial["run_id"], steps))
         sections.append(f"Partial runs, scored on their evaluations so far: {listed}.\n")
+    if "source" in runs and runs["source"].nunique() > 1:
+        counts = runs["source"].value_counts(sort=False)
+        sections.append(
+            "Runs by where they were read: "
+            + ", ".join(f"{n} from `{where}`" for where, n in counts.items())
+            + " (an earlier report's runs.csv, read back with `--include`; a run in several "
+            "counts once, from the copy that trained the most steps).\n"
+        )
     diverged = _diverged_runs(runs)
     if diverged:
         sections.append(

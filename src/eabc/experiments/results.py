@@ -216,6 +216,77 @@ def load(root: str | Path) -> tuple[pd.DataFrame, pd.DataFrame]:
     return runs, evals
 
 
+ARCHIVE_FILES = ("runs.csv", "evaluations.csv")
+"""What an earlier ``eabc report`` wrote that :func:`read_archive` reads back."""
+
+
+def read_archive(report_dir: str | Path) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """The runs and evaluations of an earlier report (its ``runs.csv`` and ``evaluations.csv``).
+
+    A sweep root lives on one machine and is lost with it; the report committed to the repository
+    is what survives. Reading it back lets the next session's report stand on every run measured
+    so far, not only on the run directories still on disk (:func:`merge`). Each row's ``source``
+    says where it came from."""
+    report_dir = Path(report_dir)
+    missing = [name for name in ARCHIVE_FILES if not (report_dir / name).is_file()]
+    if missing:
+        raise FileNotFoundError(
+            f"{report_dir} has no {' or '.join(missing)}: give a directory that `eabc report` "
+            "wrote (its --out)"
+        )
+    runs = pd.read_csv(report_dir / "runs.csv", keep_default_na=False, na_values=[""])
+    evals = pd.read_csv(report_dir / "evaluations.csv")
+    needed = {
+        "runs.csv": (runs, ["run_id", "dataset", "algo", "seed", "status", "steps", "final_score"]),
+        "evaluations.csv": (evals, ["run_id", "step", "score"]),
+    }
+    for name, (frame, columns) in needed.items():
+        lacking = [c for c in columns if c not in frame.columns]
+        if lacking:
+            raise ValueError(
+                f"{report_dir / name} lacks the column(s) {', '.join(lacking)}: it was not "
+                "written by `eabc report`"
+            )
+    runs["variant"] = runs["variant"].fillna("") if "variant" in runs else ""
+    runs["source"] = str(report_dir)
+    return runs.reindex(columns=[*_RUN_COLUMNS, "source"]), evals.reindex(columns=_EVAL_COLUMNS)
+
+
+def merge(
+    live: tuple[pd.DataFrame, pd.DataFrame],
+    *archives: tuple[pd.DataFrame, pd.DataFrame],
+    live_source: str = "",
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """One ``(runs, evaluations)`` from the live runs and archived ones (:func:`read_archive`).
+
+    A run is known by its ``run_id`` (its path under the sweep root, which names the dataset,
+    algorithm, variant and seed). Where several sources hold it, the one that trained the most
+    steps wins, the live run on a tie: a run that a new machine has only begun again does not
+    hide the finished one of an earlier session, and a live run that has caught up replaces its
+    archived copy. A run's evaluations always come from the same source as its row."""
+    sources = []
+    for index, (runs, evals) in enumerate((live, *archives)):
+        runs = runs.copy()
+        if "source" not in runs or index == 0:
+            runs["source"] = live_source
+        sources.append((index, runs, evals))
+    # An empty frame (a new machine's root) would make every column of the union an object.
+    sources = [x for x in sources if not x[1].empty] or sources[:1]
+    rows = pd.concat([r.assign(_rank=i) for i, r, _ in sources], ignore_index=True)
+    rows["_steps"] = pd.to_numeric(rows["steps"], errors="coerce").fillna(-1)
+    rows = rows.sort_values(["_steps", "_rank"], ascending=[False, True], kind="stable")
+    chosen = rows.drop_duplicates("run_id", keep="first").sort_values("run_id", kind="stable")
+    evals = pd.concat(
+        [
+            e[e["run_id"].isin(chosen.loc[chosen["_rank"] == i, "run_id"])]
+            for i, _, e in sources
+        ],
+        ignore_index=True,
+    ).infer_objects()
+    runs = chosen.drop(columns=["_rank", "_steps"]).reset_index(drop=True)
+    return runs, evals.sort_values(["run_id", "step"], kind="stable").reset_index(drop=True)
+
+
 def query(runs: pd.DataFrame, filters: list[str]) -> pd.DataFrame:
     """Rows matching every ``KEY=VALUE`` filter (values compared as text; ``*`` wildcards)."""
     out = runs

@@ -1,0 +1,106 @@
+"""Reports read back (`eabc report ROOT --include DIR`): runs measured on a machine since lost."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+from test_report import make_results
+
+from eabc.cli import main
+from eabc.experiments import report, results
+
+
+def _archive(tmp_path, runs, evaluations, name="earlier"):
+    out = tmp_path / name
+    report.write_report(runs, evaluations, out)
+    return out
+
+
+def test_a_report_read_back_makes_the_same_tables(tmp_path):
+    runs, evaluations = make_results()
+    first = _archive(tmp_path, runs, evaluations)
+    nothing = (runs.iloc[:0], evaluations.iloc[:0])  # a new machine's empty root
+    again = results.merge(nothing, results.read_archive(first))
+    second = tmp_path / "again"
+    report.write_report(*again, second)
+    for name in ("table.md", "comparison.md", "aggregate.md", "stability.md"):
+        assert (second / name).read_text() == (first / name).read_text(), name
+    key = ["run_id", "step"]
+    before = evaluations.sort_values(key).reset_index(drop=True)
+    after = pd.read_csv(second / "evaluations.csv").sort_values(key).reset_index(drop=True)
+    pd.testing.assert_frame_equal(after[before.columns], before, check_exact=True)
+    assert set(again[0]["source"]) == {str(first)}
+
+
+def test_the_copy_that_trained_more_steps_wins_and_brings_its_own_evaluations():
+    runs, evaluations = make_results()
+    done = runs.iloc[:4].copy()
+    evals = evaluations[evaluations["run_id"].isin(done["run_id"])]
+    # The live root has begun run 0 again (fewer steps), finished run 1 as well (a tie), and
+    # has a run of its own; the archive has runs 0-3 done.
+    live = done.iloc[:2].copy()
+    live.loc[live.index[0], ["steps", "final_score"]] = [5000, -1.0]
+    live.loc[live.index[1], "final_score"] = 99.0
+    fresh = runs.iloc[[10]]
+    live = pd.concat([live, fresh])
+    live_evals = pd.concat(
+        [
+            evals[evals["run_id"] == done["run_id"].iloc[0]].head(1).assign(score=-1.0),
+            evals[evals["run_id"] == done["run_id"].iloc[1]].assign(score=99.0),
+            evaluations[evaluations["run_id"] == fresh["run_id"].iloc[0]],
+        ]
+    )
+    archived = (done.assign(source="docs/results/x"), evals)
+    merged, merged_evals = results.merge((live, live_evals), archived, live_source="sweeps/x")
+
+    by_id = merged.set_index("run_id")
+    assert len(merged) == 5 and merged["run_id"].is_unique
+    first, second = done["run_id"].iloc[0], done["run_id"].iloc[1]
+    assert by_id.loc[first, "source"] == "docs/results/x"  # 5,000 live steps lose
+    assert by_id.loc[first, "final_score"] == done["final_score"].iloc[0]
+    assert by_id.loc[second, "source"] == "sweeps/x"  # a tie: the live run
+    assert by_id.loc[second, "final_score"] == 99.0
+    assert by_id.loc[fresh["run_id"].iloc[0], "source"] == "sweeps/x"
+    # Each run's evaluations come from the copy its row came from, none twice.
+    scores = merged_evals.groupby("run_id")["score"]
+    assert (scores.min()[first] > -1.0) and (scores.min()[second] == 99.0)
+    assert not merged_evals.duplicated(["run_id", "step"]).any()
+    assert set(merged_evals["run_id"]) == set(merged["run_id"])
+
+
+def test_the_command_reports_archived_and_live_runs_together(tmp_path, capsys):
+    runs, evaluations = make_results()
+    datasets = sorted(runs["dataset"].unique())
+    old = runs["dataset"] == datasets[0]
+    archive = _archive(tmp_path, runs[old], evaluations[evaluations["run_id"].isin(runs[old]["run_id"])])
+    empty = tmp_path / "new-machine"  # a sweep root that does not exist yet
+    out = tmp_path / "out"
+    main(["report", str(empty), "--include", str(archive), "--out", str(out)])
+    text = (out / "table.md").read_text()
+    assert datasets[0] in text and datasets[1] not in text
+    # Runs from two places: the report says how many came from where.
+    live = tmp_path / "live"
+    report.write_report(runs[~old], evaluations, live)
+    out2 = tmp_path / "out2"
+    main(["report", str(empty), "--include", str(archive), str(live), "--out", str(out2)])
+    page = (out2 / "report.md").read_text()
+    n_old, n_new = int(old.sum()), int((~old).sum())
+    assert f"{n_old} from `{archive}`" in page and f"{n_new} from `{live}`" in page
+    table = (out2 / "table.md").read_text()
+    assert datasets[0] in table and datasets[1] in table
+    merged = pd.read_csv(out2 / "runs.csv")
+    assert len(merged) == len(runs) and np.allclose(
+        merged.set_index("run_id").loc[runs["run_id"], "final_score"], runs["final_score"]
+    )
+
+
+def test_what_is_not_a_report_is_refused_with_what_to_give(tmp_path):
+    with pytest.raises(FileNotFoundError, match="runs.csv or evaluations.csv.*eabc report"):
+        results.read_archive(tmp_path)
+    (tmp_path / "runs.csv").write_text("a,b\n1,2\n")
+    (tmp_path / "evaluations.csv").write_text("run_id,step,score,score_std,return_mean,return_std\n")
+    with pytest.raises(ValueError, match="runs.csv lacks the column.*run_id"):
+        results.read_archive(tmp_path)
+    with pytest.raises(SystemExit, match="does not exist"):
+        main(["report", str(tmp_path / "nothing")])
