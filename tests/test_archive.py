@@ -73,7 +73,9 @@ def test_the_command_reports_archived_and_live_runs_together(tmp_path, capsys):
     runs, evaluations = make_results()
     datasets = sorted(runs["dataset"].unique())
     old = runs["dataset"] == datasets[0]
-    archive = _archive(tmp_path, runs[old], evaluations[evaluations["run_id"].isin(runs[old]["run_id"])])
+    archive = _archive(
+        tmp_path, runs[old], evaluations[evaluations["run_id"].isin(runs[old]["run_id"])]
+    )
     empty = tmp_path / "new-machine"  # a sweep root that does not exist yet
     out = tmp_path / "out"
     main(["report", str(empty), "--include", str(archive), "--out", str(out)])
@@ -99,7 +101,9 @@ def test_what_is_not_a_report_is_refused_with_what_to_give(tmp_path):
     with pytest.raises(FileNotFoundError, match="runs.csv or evaluations.csv.*eabc report"):
         results.read_archive(tmp_path)
     (tmp_path / "runs.csv").write_text("a,b\n1,2\n")
-    (tmp_path / "evaluations.csv").write_text("run_id,step,score,score_std,return_mean,return_std\n")
+    (tmp_path / "evaluations.csv").write_text(
+        "run_id,step,score,score_std,return_mean,return_std\n"
+    )
     with pytest.raises(ValueError, match="runs.csv lacks the column.*run_id"):
         results.read_archive(tmp_path)
     with pytest.raises(SystemExit, match="does not exist"):

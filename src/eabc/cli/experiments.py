@@ -222,9 +222,7 @@ def run_report(cmd: Report) -> None:
     runs = runs[runs["status"] != "broken"]
     if cmd.include:
         archives = [results.read_archive(d) for d in cmd.include]
-        runs, evaluations = results.merge(
-            (runs, evaluations), *archives, live_source=str(cmd.root)
-        )
+        runs, evaluations = results.merge((runs, evaluations), *archives, live_source=str(cmd.root))
     if runs.empty:
         raise ValueError(f"no runs under {cmd.root}")
     out = Path(cmd.out) if cmd.out else Path(cmd.root) / "report"

@@ -277,10 +277,7 @@ def merge(
     rows = rows.sort_values(["_steps", "_rank"], ascending=[False, True], kind="stable")
     chosen = rows.drop_duplicates("run_id", keep="first").sort_values("run_id", kind="stable")
     evals = pd.concat(
-        [
-            e[e["run_id"].isin(chosen.loc[chosen["_rank"] == i, "run_id"])]
-            for i, _, e in sources
-        ],
+        [e[e["run_id"].isin(chosen.loc[chosen["_rank"] == i, "run_id"])] for i, _, e in sources],
         ignore_index=True,
     ).infer_objects()
     runs = chosen.drop(columns=["_rank", "_steps"]).reset_index(drop=True)
