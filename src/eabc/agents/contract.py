@@ -63,6 +63,9 @@ class Algorithm:
     machine (``benchmarks/algorithms.py``: a quiet 2-core Zen 5, 2026-12-02), hopper's shapes."""
     cost: Callable[[Any], float] | None = None
     """``cost(config)``: how many times slower than the preset these settings are (e.g. K / 10)."""
+    pretrain_s: Callable[[Any], float] | None = None
+    """``pretrain_s(config)``: a cost hint for sweeps, seconds of the one-off ``pretrain`` (MOPO's
+    model fit) on a 1M-transition dataset, which ``steps_per_s`` does not count."""
     short_names: Mapping[str, str] = dataclasses.field(default_factory=lambda: dict(SHORT_NAMES))
     """Short names of settings in run ids and labels (the paper's K and p by default)."""
     report_settings: tuple[str, ...] = ()

@@ -232,6 +232,28 @@ def fit(
     return best_params, elites, info
 
 
+FIT_FLOPS_PER_S = 60e9
+"""Training throughput of :func:`fit` (multiply-adds x 2, forward and backward) on one core,
+measured for the cost hint of :func:`fit_seconds` (see its docstring)."""
+TYPICAL_EPOCHS = 60
+"""Epochs a fit runs when only the patience stops it (a guess for the cost hint: MOPO's fit on
+hopper-medium's 1M transitions ran past 35 epochs without stopping)."""
+
+
+def fit_seconds(
+    config: DynamicsConfig, obs_dim: int = 11, act_dim: int = 3, transitions: int = 1_000_000
+) -> float:
+    """A cost hint for sweeps: seconds :func:`fit` takes on ``transitions`` (hopper's shapes by
+    default), ``max_epochs`` epochs or else :data:`TYPICAL_EPOCHS`, at :data:`FIT_FLOPS_PER_S`.
+    Each epoch passes every member over the training split once, forward and backward
+    (3 x 2 flops per weight and example)."""
+    dims = (obs_dim + act_dim, *config.hidden_dims, 2 * (obs_dim + 1))
+    weights = sum(a * b for a, b in zip(dims, dims[1:]))
+    train = transitions - min(int(transitions * config.holdout_ratio), config.max_holdout)
+    epochs = config.max_epochs or TYPICAL_EPOCHS
+    return epochs * config.num_members * weights * train * 6 / FIT_FLOPS_PER_S
+
+
 def select_members(mask: jax.Array, new: Params, old: Params) -> Params:
     """Members where ``mask`` is set from ``new``, the others from ``old`` (shared arrays: new)."""
 

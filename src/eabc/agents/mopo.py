@@ -334,9 +334,13 @@ def update(
     return state, {**metrics, **state.rollout_metrics, "model_buffer": state.buffer_count}
 
 
+def _fit_seconds(config: MOPOConfig) -> float:
+    return dynamics.fit_seconds(config.model)
+
+
 ALGORITHMS = (
     # steps/s: benchmarks/algorithms.py on a quiet 2-core Zen 5, excluding the one-off model fit.
     # state_layout 2: the SAC state as one field
     Algorithm("mopo", "MOPO", PRESETS["mopo"], init, update, column=9, actor="tanh-gaussian",
-              pretrain=pretrain, resolve=resolve, steps_per_s=168.0, state_layout=2),
+              pretrain=pretrain, pretrain_s=_fit_seconds, resolve=resolve, steps_per_s=168.0, state_layout=2),
 )  # fmt: skip

@@ -151,10 +151,18 @@ def run_sweep(cmd: Sweep) -> None:
     left = [r for r in rows if r["status"] != "done"]
     hours = sum(r["seconds"] for r in left) / 3600
     counts = {s: sum(r["status"] == s for r in rows) for s in ("done", "partial", "pending")}
+    measured = sum(r["measured"] for r in left)
+    basis = (
+        "the reference host's speeds (this host may differ 3x)"
+        if not measured
+        else "speeds measured in the root"
+        if measured == len(left)
+        else f"speeds measured in the root for {measured} of {len(left)}, the reference "
+        "host's for the rest"
+    )
     print(
         f"{len(rows)} runs in {root}: {counts['done']} done, {counts['partial']} partial, "
-        f"{counts['pending']} pending; about {hours:.1f} CPU-core-hours left at this machine's "
-        "measured speeds"
+        f"{counts['pending']} pending; about {hours:.1f} CPU-core-hours left at {basis}"
     )
     found = sweep.problems(runs, root)
     for why in found["broken"]:  # one unreadable run does not stop the others

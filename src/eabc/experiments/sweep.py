@@ -89,16 +89,47 @@ def problems(runs: list[RunSpec], root: Path) -> dict[str, list[str]]:
     return out
 
 
-def estimate_seconds(run: RunSpec, steps_done: int = 0) -> float:
-    """A rough cost of the remaining steps on one machine like ours (2 CPU cores), from the
-    algorithm's contract: its preset's measured steps/s, scaled by its settings' relative cost."""
+def estimate_seconds(run: RunSpec, steps_done: int = 0, steps_per_s: float | None = None) -> float:
+    """A rough cost of the remaining steps: at ``steps_per_s`` where it is known (measured in the
+    sweep root, :func:`measured_speeds`), else at the algorithm contract's hint (its preset's
+    steps/s on the 2-core reference host, scaled by its settings' relative cost); plus the
+    one-off pretraining (a model fit) of a run not begun, and the evaluations."""
     algorithm = get_algorithm(run.algo)
     config = dataclasses.replace(algorithm.preset, **dict(run.overrides))
-    rate = algorithm.steps_per_s / max(algorithm.relative_cost(config), 1e-9)
+    rate = steps_per_s or algorithm.steps_per_s / max(algorithm.relative_cost(config), 1e-9)
     train = run.train_config()
     left = max(train.steps - steps_done, 0)
     evaluations = left // train.eval_interval * train.eval_episodes
-    return left / rate + evaluations * EPISODE_SECONDS
+    fit = algorithm.pretrain_s(config) if algorithm.pretrain_s and steps_done == 0 else 0.0
+    return left / rate + evaluations * EPISODE_SECONDS + fit
+
+
+def measured_speeds(runs: list[RunSpec], root: Path) -> dict[str, float]:
+    """Steps/s measured in ``root`` for each run that has a measurement to go by: its own log's
+    median chunk speed, else the median over the root's runs of the same algorithm and settings
+    (any dataset or seed). Runs with neither are left out (the contract's hint applies)."""
+    from eabc.experiments import results  # noqa: PLC0415
+
+    own: dict[str, float] = {}
+    for run in runs:
+        run_dir = root / RUNS / run.run_id
+        if (run_dir / "log.csv").exists():
+            row, _ = results.read_run(run_dir)
+            speed = row.get("steps_per_s")
+            if isinstance(speed, float) and speed > 0:
+                own[run.run_id] = speed
+    by_setting: dict[tuple, list[float]] = {}
+    for run in runs:
+        if run.run_id in own:
+            by_setting.setdefault((run.algo, run.overrides), []).append(own[run.run_id])
+    out = {}
+    for run in runs:
+        speeds = by_setting.get((run.algo, run.overrides))
+        if run.run_id in own:
+            out[run.run_id] = own[run.run_id]
+        elif speeds:
+            out[run.run_id] = sorted(speeds)[len(speeds) // 2]
+    return out
 
 
 EPISODE_SECONDS = 0.15
@@ -106,6 +137,9 @@ EPISODE_SECONDS = 0.15
 
 
 def plan(runs: list[RunSpec], root: Path) -> list[dict[str, Any]]:
+    """Each run's status, steps done and estimated seconds left; ``measured`` says whether the
+    estimate rests on speeds measured in ``root`` (else on the contract's reference-host hint)."""
+    speeds = measured_speeds(runs, root)
     rows = []
     for run in runs:
         state, steps = status(run, root)
@@ -114,7 +148,8 @@ def plan(runs: list[RunSpec], root: Path) -> list[dict[str, Any]]:
                 "run": run,
                 "status": state,
                 "steps_done": steps,
-                "seconds": estimate_seconds(run, steps),
+                "seconds": estimate_seconds(run, steps, speeds.get(run.run_id)),
+                "measured": run.run_id in speeds,
             }
         )
     return rows

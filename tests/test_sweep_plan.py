@@ -1,0 +1,115 @@
+"""A sweep's plan: what is left and what it costs, from speeds measured in the root when it has them."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import pytest
+
+from eabc.agents import get_algorithm
+from eabc.cli import main
+from eabc.experiments import sweep
+from eabc.experiments.spec import RunSpec
+
+TRAIN = (("eval_episodes", 10), ("eval_interval", 5000), ("steps", 20000))
+
+
+def _run(algo="td3bc", seed=0, overrides=(), dataset="hopper-medium"):
+    return RunSpec(dataset, algo, seed, tuple(overrides), TRAIN)
+
+
+def _fake_run_dir(root, run: RunSpec, speeds: list[float]):
+    """A run directory with a config and a log whose chunks ran at ``speeds`` (steps/s)."""
+    run_dir = root / sweep.RUNS / run.run_id
+    run_dir.mkdir(parents=True)
+    train = {"algo": run.algo, "seed": run.seed, "steps": 20000, "dataset": run.dataset}
+    (run_dir / "config.json").write_text(json.dumps({"train": train, "agent": {}}))
+    rows = ["step,steps_per_s,q_mean"] + [f"{1000 * (i + 1)},{v},1.0" for i, v in enumerate(speeds)]
+    (run_dir / "log.csv").write_text("\n".join(rows) + "\n")
+    return run_dir
+
+
+def test_without_measurements_the_contract_hint_and_the_evaluations_set_the_cost():
+    run = _run()
+    algorithm = get_algorithm("td3bc")
+    expected = 20000 / algorithm.steps_per_s + 4 * 10 * sweep.EPISODE_SECONDS
+    assert sweep.estimate_seconds(run) == pytest.approx(expected)
+    # Half the steps done: half the steps and half the evaluations left.
+    half = 10000 / algorithm.steps_per_s + 2 * 10 * sweep.EPISODE_SECONDS
+    assert sweep.estimate_seconds(run, 10000) == pytest.approx(half)
+    assert sweep.estimate_seconds(run, 10000, steps_per_s=50.0) == pytest.approx(
+        10000 / 50.0 + 2 * 10 * sweep.EPISODE_SECONDS
+    )
+
+
+def test_speeds_measured_in_the_root_replace_the_hint_for_the_run_and_its_siblings(tmp_path):
+    measured = _run(seed=0)
+    sibling = _run(seed=1)  # same algorithm and settings, not begun
+    other_data = _run(seed=2, dataset="walker2d-medium")
+    other_setting = _run(seed=0, algo="eabc", overrides=(("num_critics", 5),))
+    # The first chunk compiled (slow); the median ignores it.
+    _fake_run_dir(tmp_path, measured, [3.0, 40.0, 42.0, 44.0])
+    runs = [measured, sibling, other_data, other_setting]
+    speeds = sweep.measured_speeds(runs, tmp_path)
+    assert speeds[measured.run_id] == pytest.approx(41.0)
+    assert speeds[sibling.run_id] == speeds[other_data.run_id] == pytest.approx(41.0)
+    assert other_setting.run_id not in speeds
+    rows = {r["run"].run_id: r for r in sweep.plan(runs, tmp_path)}
+    assert rows[sibling.run_id]["measured"] and not rows[other_setting.run_id]["measured"]
+    assert rows[sibling.run_id]["seconds"] == pytest.approx(
+        20000 / 41.0 + 4 * 10 * sweep.EPISODE_SECONDS
+    )
+    eabc = get_algorithm("eabc")
+    config = dataclasses.replace(eabc.preset, num_critics=5)
+    hint = eabc.steps_per_s / eabc.relative_cost(config)
+    assert rows[other_setting.run_id]["seconds"] == pytest.approx(
+        20000 / hint + 4 * 10 * sweep.EPISODE_SECONDS
+    )
+
+
+def test_uwac_costs_less_with_fewer_dropout_passes_and_its_preset_is_the_measured_one():
+    uwac = get_algorithm("uwac")
+    costs = [
+        uwac.relative_cost(dataclasses.replace(uwac.preset, num_dropout_samples=t))
+        for t in (2, 10, 100, 200)
+    ]
+    assert costs[2] == pytest.approx(1.0)
+    assert costs == sorted(costs) and costs[0] < 0.15 and costs[3] > 1.8
+    # At T = 2 the step is close to BEAR's (its fixed work) plus two passes.
+    assert uwac.steps_per_s / costs[0] == pytest.approx(34.3, rel=0.02)
+
+
+def test_a_model_fit_is_counted_once_before_a_run_begins():
+    for algo in ("mopo", "morel"):
+        algorithm = get_algorithm(algo)
+        assert algorithm.pretrain is not None and algorithm.pretrain_s is not None
+        run = _run(algo=algo)
+        fit = algorithm.pretrain_s(algorithm.preset)
+        assert fit > 60
+        begun = sweep.estimate_seconds(run, 5000)  # one evaluation in, no fit left
+        assert sweep.estimate_seconds(run) == pytest.approx(
+            begun + fit + 5000 / algorithm.steps_per_s + 10 * sweep.EPISODE_SECONDS
+        )
+    # A capped fit costs less than MOPO's (trained until the patience runs out).
+    mopo = get_algorithm("mopo")
+    capped = dataclasses.replace(mopo.preset, model_max_epochs=5)
+    assert mopo.pretrain_s(capped) < mopo.pretrain_s(mopo.preset)
+
+
+def test_the_dry_run_says_what_its_estimate_rests_on(tmp_path, capsys):
+    spec = tmp_path / "spec.yaml"
+    spec.write_text(
+        "datasets: [hopper-medium]\nalgos: [td3bc]\nseeds: [0, 1]\nsteps: 20000\n"
+        "train: {eval_interval: 5000, eval_episodes: 10}\n"
+    )
+    root = tmp_path / "root"
+    main(["sweep", str(spec), "--root", str(root), "--dry-run"])
+    assert "the reference host's speeds" in capsys.readouterr().out
+    _fake_run_dir(root, _run(seed=0), [100.0, 100.0])
+    main(["sweep", str(spec), "--root", str(root), "--dry-run"])
+    out = capsys.readouterr().out
+    assert "at speeds measured in the root" in out
+    # Two runs of 20K steps at 100 steps/s (the second not begun), plus 80 evaluation episodes.
+    hours = (2 * 20000 / 100.0 + 2 * 40 * sweep.EPISODE_SECONDS) / 3600
+    assert f"about {hours:.1f} CPU-core-hours" in out
