@@ -113,3 +113,39 @@ def test_the_dry_run_says_what_its_estimate_rests_on(tmp_path, capsys):
     # Two runs of 20K steps at 100 steps/s (the second not begun), plus 80 evaluation episodes.
     hours = (2 * 20000 / 100.0 + 2 * 40 * sweep.EPISODE_SECONDS) / 3600
     assert f"about {hours:.1f} CPU-core-hours" in out
+
+
+def test_durations_and_the_first_job_that_fits_a_deadline():
+    assert [sweep.parse_duration(t) for t in ("90s", "45m", "2.5h", "10")] == [90, 2700, 9000, 600]
+    for bad in ("", "h", "-5m", "0s", "soon", "nanh"):
+        with pytest.raises(ValueError, match="positive number with s, m or h"):
+            sweep.parse_duration(bad)
+    jobs, costs = ["a", "b", "c"], [500.0, 50.0, 10.0]
+    assert sweep.next_job(jobs, costs, now=0.0, deadline=None) == 0
+    assert sweep.next_job(jobs, costs, now=0.0, deadline=600.0) == 0
+    assert sweep.next_job(jobs, costs, now=0.0, deadline=100.0) == 1  # "a" would end at 500
+    assert sweep.next_job(jobs, costs, now=95.0, deadline=100.0) is None
+    assert sweep.next_job([], [], now=0.0, deadline=100.0) is None
+
+
+def test_within_starts_only_the_runs_that_end_in_time(tmp_path, capsys, pendulum_dataset):
+    from eabc.data.loaders import save_npz
+
+    data = tmp_path / "pend.npz"
+    save_npz(pendulum_dataset, data)
+    spec = tmp_path / "spec.yaml"
+    # td3bc: ~0.5 s by its hint; EABC with 50 critics: ~10 s. Only the first fits in 5 s.
+    spec.write_text(
+        f"datasets: [{data}]\nvariants:\n- {{algo: eabc, num_critics: 50, confidence_level: 1.0}}"
+        "\n- {algo: td3bc}\nseeds: [0]\nsteps: 300\n"
+        "train: {eval_interval: 300, eval_episodes: 1, log_interval: 100, env: Pendulum-v1}\n"
+    )
+    root = tmp_path / "root"
+    main(["sweep", str(spec), "--root", str(root), "--workers", "2", "--within", "5s"])
+    out = capsys.readouterr().out
+    started = sorted(p.name for p in (root / sweep.RUNS).iterdir())
+    assert len(started) == 1 and "__td3bc__" in started[0]
+    assert "left for a later sweep (1, their estimates end after the deadline)" in out
+    assert "__eabc__" in out.split("left for a later sweep")[1]
+    with pytest.raises(SystemExit, match="a duration is a positive number"):
+        main(["sweep", str(spec), "--root", str(root), "--within", "later"])

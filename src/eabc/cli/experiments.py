@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import sys
+import time
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -58,6 +59,10 @@ class Sweep:
     """Ray: GPUs declared per job (e.g. 0.25 to pack four jobs per GPU)."""
     dry_run: bool = False
     """List the runs, their state and the estimated cost, then stop."""
+    within: str | None = None
+    """Start only the runs whose estimate (as --dry-run shows it) ends within this time from now,
+    e.g. 150m or 2.5h; the others wait for a later sweep. For machines that are not kept: a run
+    begun and not finished when the machine goes is lost. Local backend only."""
     eval_interval: int | None = None
     """Evaluate every this many steps (default the spec's, else 5000)."""
     eval_episodes: int | None = None
@@ -179,8 +184,13 @@ def run_sweep(cmd: Sweep) -> None:
                 f"  {r['status']:8s} {r['steps_done']:>8d}  ~{r['seconds'] / 3600:6.2f} h  {spec.run_id}"
             )
         return
+    deadline = None if cmd.within is None else time.time() + sweep.parse_duration(cmd.within)
+    if deadline is not None and cmd.backend != "local":
+        raise ValueError("--within works with the local backend only")
     layout = sweep.default_layout() if cmd.layout == "auto" else cmd.layout
     job_list = sweep.jobs(runs, root, layout)
+    seconds = {r["run"].run_id: r["seconds"] for r in rows}
+    job_seconds = [max(seconds[run.run_id] for run in job) for job in job_list]
     sweep.prepare_datasets([job[0] for job in job_list])
     root.mkdir(parents=True, exist_ok=True)
     (root / "sweep.yaml").write_text(yaml.safe_dump(sweep_spec(cmd), sort_keys=False))
@@ -188,7 +198,10 @@ def run_sweep(cmd: Sweep) -> None:
         if cmd.backend == "ray":
             sweep.run_ray(job_list, root, cmd.ray_address, cmd.cpus_per_job, cmd.gpus_per_job)
         else:
-            sweep.run_local(job_list, root, cmd.workers, single_thread=layout == "processes")
+            sweep.run_local(
+                job_list, root, cmd.workers, single_thread=layout == "processes",
+                deadline=deadline, job_seconds=job_seconds,
+            )  # fmt: skip
     finally:
         table, _ = results.collect(root)
         print(f"results: {root / results.DATABASE} ({len(table)} runs)")

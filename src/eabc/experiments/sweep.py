@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 import signal
 import subprocess
@@ -235,18 +236,47 @@ SINGLE_THREAD = {
 }
 
 
+def parse_duration(text: str) -> float:
+    """Seconds in ``90s``, ``45m``, ``2.5h`` (a bare number is minutes)."""
+    units = {"s": 1.0, "m": 60.0, "h": 3600.0}
+    value, unit = (text[:-1], text[-1]) if text and text[-1] in units else (text, "m")
+    try:
+        seconds = float(value) * units[unit]
+    except ValueError:
+        seconds = math.nan
+    if not seconds > 0 or not math.isfinite(seconds):
+        raise ValueError(
+            f"a duration is a positive number with s, m or h (90s, 45m, 2.5h), got {text!r}"
+        )
+    return seconds
+
+
+def next_job(pending: list, seconds: list[float], now: float, deadline: float | None) -> int | None:
+    """The index of the first pending job whose estimate ends by ``deadline`` (the first one
+    when there is no deadline); None when none does. Time only moves on, so a job that does not
+    fit now never will: the caller drops the ones before the index."""
+    for i, cost in enumerate(seconds[: len(pending)]):
+        if deadline is None or now + cost <= deadline:
+            return i
+    return None
+
+
 def run_local(
     job_list: list[list[RunSpec]],
     root: Path,
     workers: int | None = None,
     single_thread: bool = True,
     log=print,
+    deadline: float | None = None,
+    job_seconds: list[float] | None = None,
 ) -> None:
     """A pool of ``workers`` subprocesses (default: one per CPU core), one job each at a time.
 
     Every job is ``python -m eabc.experiments.worker ROOT JOB_JSON``; a killed sweep (SIGINT,
     SIGTERM, or SIGKILL, which the workers notice themselves) stops its workers, and the runs
-    resume from their checkpoints next time.
+    resume from their checkpoints next time. With a ``deadline`` (``time.time()`` seconds) a job
+    starts only if its estimate (``job_seconds``, in the order of ``job_list``) ends by then; the
+    rest are left for a later sweep and named in the log.
     """
     from eabc.experiments.worker import PARENT  # noqa: PLC0415
 
@@ -254,6 +284,8 @@ def run_local(
     env = {**os.environ, **(SINGLE_THREAD if single_thread else {}), PARENT: str(os.getpid())}
     previous = _exit_on_sigterm()
     pending = list(job_list)
+    costs = list(job_seconds) if job_seconds is not None else [0.0] * len(pending)
+    left_out: list[str] = []
     active: list[tuple[subprocess.Popen, list[RunSpec], Any]] = []
     logs = root / "logs"
     logs.mkdir(parents=True, exist_ok=True)
@@ -261,7 +293,16 @@ def run_local(
     try:
         while pending or active:
             while pending and len(active) < workers:
+                index = next_job(pending, costs, time.time(), deadline)
+                if index is None:
+                    index = len(pending)
+                for job in pending[:index]:  # they would not finish before the deadline
+                    left_out.append(job[0].group_id if len(job) > 1 else job[0].run_id)
+                del pending[:index], costs[:index]
+                if not pending:
+                    break
                 job = pending.pop(0)
+                costs.pop(0)
                 name = job[0].group_id if len(job) > 1 else job[0].run_id
                 out = open(logs / f"{name}.log", "ab")  # noqa: SIM115
                 payload = json.dumps([r.to_json() for r in job])
@@ -288,6 +329,11 @@ def run_local(
             out.close()
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+    if left_out:
+        log(
+            f"left for a later sweep ({len(left_out)}, their estimates end after the deadline): "
+            + ", ".join(left_out)
+        )
     if failures:
         raise RuntimeError(f"{len(failures)} job(s) failed: {', '.join(failures)}")
 
