@@ -69,32 +69,25 @@ def test_the_copy_that_trained_more_steps_wins_and_brings_its_own_evaluations():
     assert set(merged_evals["run_id"]) == set(merged["run_id"])
 
 
-def test_the_command_reports_archived_and_live_runs_together(tmp_path, capsys):
+def test_the_command_reports_archived_and_live_runs_together(tmp_path):
     runs, evaluations = make_results()
     datasets = sorted(runs["dataset"].unique())
     old = runs["dataset"] == datasets[0]
-    archive = _archive(
-        tmp_path, runs[old], evaluations[evaluations["run_id"].isin(runs[old]["run_id"])]
-    )
+    archive = _archive(tmp_path, runs[old], evaluations)  # every evaluation: only its runs' count
+    live = _archive(tmp_path, runs[~old], evaluations, name="live")
     empty = tmp_path / "new-machine"  # a sweep root that does not exist yet
     out = tmp_path / "out"
-    main(["report", str(empty), "--include", str(archive), "--out", str(out)])
-    text = (out / "table.md").read_text()
-    assert datasets[0] in text and datasets[1] not in text
-    # Runs from two places: the report says how many came from where.
-    live = tmp_path / "live"
-    report.write_report(runs[~old], evaluations, live)
-    out2 = tmp_path / "out2"
-    main(["report", str(empty), "--include", str(archive), str(live), "--out", str(out2)])
-    page = (out2 / "report.md").read_text()
+    main(["report", str(empty), "--include", str(archive), str(live), "--out", str(out)])
+    page = (out / "report.md").read_text()
     n_old, n_new = int(old.sum()), int((~old).sum())
     assert f"{n_old} from `{archive}`" in page and f"{n_new} from `{live}`" in page
-    table = (out2 / "table.md").read_text()
+    table = (out / "table.md").read_text()
     assert datasets[0] in table and datasets[1] in table
-    merged = pd.read_csv(out2 / "runs.csv")
-    assert len(merged) == len(runs) and np.allclose(
-        merged.set_index("run_id").loc[runs["run_id"], "final_score"], runs["final_score"]
-    )
+    merged = pd.read_csv(out / "runs.csv").set_index("run_id")
+    assert len(merged) == len(runs)
+    assert np.allclose(merged.loc[runs["run_id"], "final_score"], runs["final_score"])
+    written = pd.read_csv(out / "evaluations.csv")
+    assert len(written) == len(evaluations) and set(written["run_id"]) == set(runs["run_id"])
 
 
 def test_what_is_not_a_report_is_refused_with_what_to_give(tmp_path):
