@@ -232,9 +232,11 @@ def fit(
     return best_params, elites, info
 
 
-FIT_FLOPS_PER_S = 60e9
-"""Training throughput of :func:`fit` (multiply-adds x 2, forward and backward) on one core,
-measured for the cost hint of :func:`fit_seconds` (see its docstring)."""
+FIT_FLOPS_PER_S = 1.0e11
+"""Training throughput of :func:`fit` (2 flops per multiply-add, forward and backward) on one
+core of the reference Zen 5 host, for the cost hint of :func:`fit_seconds`: MOPO's fit on
+hopper-medium ran 35 epochs in about 45 minutes there with two thirds of a core (2026-12-02),
+about 51 s per epoch of 5.3e12 flops on a whole core. Not a clean measurement: a hint."""
 TYPICAL_EPOCHS = 60
 """Epochs a fit runs when only the patience stops it (a guess for the cost hint: MOPO's fit on
 hopper-medium's 1M transitions ran past 35 epochs without stopping)."""
