@@ -149,3 +149,42 @@ def test_within_starts_only_the_runs_that_end_in_time(tmp_path, capsys, pendulum
     assert "__eabc__" in out.split("left for a later sweep")[1]
     with pytest.raises(SystemExit, match="a duration is a positive number"):
         main(["sweep", str(spec), "--root", str(root), "--within", "later"])
+
+
+def test_runs_an_earlier_report_holds_as_done_are_not_run_again(tmp_path, capsys):
+    import pandas as pd
+
+    archive = tmp_path / "earlier"
+    archive.mkdir()
+    rows = [  # done at the spec's 20K; done at only 10K; partial
+        ("runs/" + _run(seed=0).run_id, "done", 20000, 20000),
+        ("runs/" + _run(seed=1).run_id, "done", 10000, 10000),
+        ("runs/" + _run(seed=2).run_id, "partial", 15000, 20000),
+    ]
+    pd.DataFrame(
+        [
+            {
+                "run_id": r,
+                "dataset": "hopper-medium",
+                "algo": "td3bc",
+                "seed": i,
+                "status": st,
+                "steps": n,
+                "steps_target": t,
+                "final_score": 50.0,
+            }
+            for i, (r, st, n, t) in enumerate(rows)
+        ]  # fmt: skip
+    ).to_csv(archive / "runs.csv", index=False)
+    (archive / "evaluations.csv").write_text("run_id,step,score\n")
+    spec = tmp_path / "spec.yaml"
+    spec.write_text(
+        "datasets: [hopper-medium]\nalgos: [td3bc]\nseeds: [0, 1, 2]\nsteps: 20000\n"
+        "train: {eval_interval: 5000, eval_episodes: 10}\n"
+    )
+    main(["sweep", str(spec), "--root", str(tmp_path / "root"), "--include", str(archive),
+          "--dry-run"])  # fmt: skip
+    out = capsys.readouterr().out
+    assert f"1 runs done in {archive}: not run again" in out
+    assert "2 runs in" in out and _run(seed=0).run_id not in out
+    assert _run(seed=1).run_id in out and _run(seed=2).run_id in out

@@ -59,6 +59,10 @@ class Sweep:
     """Ray: GPUs declared per job (e.g. 0.25 to pack four jobs per GPU)."""
     dry_run: bool = False
     """List the runs, their state and the estimated cost, then stop."""
+    include: tuple[str, ...] = ()
+    """Earlier reports (directories `eabc report` wrote, e.g. docs/results/study): runs they hold
+    as done, at the spec's steps, are not run again here (give the same to `eabc report
+    --include` to report them with ROOT's)."""
     within: str | None = None
     """Start only the runs whose estimate (as --dry-run shows it) ends within this time from now,
     e.g. 150m or 2.5h; the others wait for a later sweep. For machines that are not kept: a run
@@ -152,6 +156,11 @@ def run_sweep(cmd: Sweep) -> None:
 
     root = Path(cmd.root)
     runs = expand(sweep_spec(cmd))
+    if cmd.include:
+        archived = sweep.archived_done(runs, [results.read_archive(d) for d in cmd.include])
+        if archived:
+            print(f"{len(archived)} runs done in {', '.join(cmd.include)}: not run again")
+        runs = [r for r in runs if r.run_id not in archived]
     rows = sweep.plan(runs, root)
     left = [r for r in rows if r["status"] != "done"]
     hours = sum(r["seconds"] for r in left) / 3600

@@ -236,6 +236,21 @@ SINGLE_THREAD = {
 }
 
 
+def archived_done(runs: list[RunSpec], archives: list[tuple[Any, Any]]) -> set[str]:
+    """The ids of ``runs`` that an earlier report (``results.read_archive``) holds as done with
+    at least the steps the spec asks."""
+    done = set()
+    for table, _ in archives:
+        finished = table[(table["status"] == "done") & (table["steps"] >= table["steps_target"])]
+        done |= {(rid, int(steps)) for rid, steps in zip(finished["run_id"], finished["steps"])}
+    return {
+        run.run_id
+        for run in runs
+        for rid, steps in done
+        if rid == f"{RUNS}/{run.run_id}" and steps >= run.train_config().steps
+    }
+
+
 def parse_duration(text: str) -> float:
     """Seconds in ``90s``, ``45m``, ``2.5h`` (a bare number is minutes)."""
     units = {"s": 1.0, "m": 60.0, "h": 3600.0}
