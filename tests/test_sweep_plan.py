@@ -25,6 +25,7 @@ def _fake_run_dir(root, run: RunSpec, speeds: list[float]):
     run_dir.mkdir(parents=True)
     train = {"algo": run.algo, "seed": run.seed, "steps": 20000, "dataset": run.dataset}
     (run_dir / "config.json").write_text(json.dumps({"train": train, "agent": {}}))
+    (run_dir / sweep.SPEC).write_text(json.dumps({"run_id": run.run_id, **run.to_json()}))
     rows = ["step,steps_per_s,q_mean"] + [f"{1000 * (i + 1)},{v},1.0" for i, v in enumerate(speeds)]
     (run_dir / "log.csv").write_text("\n".join(rows) + "\n")
     return run_dir
@@ -55,6 +56,10 @@ def test_speeds_measured_in_the_root_replace_the_hint_for_the_run_and_its_siblin
     assert speeds[measured.run_id] == pytest.approx(41.0)
     assert speeds[sibling.run_id] == speeds[other_data.run_id] == pytest.approx(41.0)
     assert other_setting.run_id not in speeds
+    # A sweep deciding what to start next sees the runs begun by others (not in its list).
+    assert sweep.measured_speeds([sibling], tmp_path) == {sibling.run_id: pytest.approx(41.0)}
+    (cost,) = sweep.job_estimates([[sibling]], tmp_path)
+    assert cost == pytest.approx(20000 / 41.0 + 4 * 10 * sweep.EPISODE_SECONDS)
     rows = {r["run"].run_id: r for r in sweep.plan(runs, tmp_path)}
     assert rows[sibling.run_id]["measured"] and not rows[other_setting.run_id]["measured"]
     assert rows[sibling.run_id]["seconds"] == pytest.approx(

@@ -198,8 +198,6 @@ def run_sweep(cmd: Sweep) -> None:
         raise ValueError("--within works with the local backend only")
     layout = sweep.default_layout() if cmd.layout == "auto" else cmd.layout
     job_list = sweep.jobs(runs, root, layout)
-    seconds = {r["run"].run_id: r["seconds"] for r in rows}
-    job_seconds = [max(seconds[run.run_id] for run in job) for job in job_list]
     sweep.prepare_datasets([job[0] for job in job_list])
     root.mkdir(parents=True, exist_ok=True)
     (root / "sweep.yaml").write_text(yaml.safe_dump(sweep_spec(cmd), sort_keys=False))
@@ -209,7 +207,7 @@ def run_sweep(cmd: Sweep) -> None:
         else:
             sweep.run_local(
                 job_list, root, cmd.workers, single_thread=layout == "processes",
-                deadline=deadline, job_seconds=job_seconds,
+                deadline=deadline,
             )  # fmt: skip
     finally:
         table, _ = results.collect(root)

@@ -106,30 +106,33 @@ def estimate_seconds(run: RunSpec, steps_done: int = 0, steps_per_s: float | Non
 
 
 def measured_speeds(runs: list[RunSpec], root: Path) -> dict[str, float]:
-    """Steps/s measured in ``root`` for each run that has a measurement to go by: its own log's
-    median chunk speed, else the median over the root's runs of the same algorithm and settings
-    (any dataset or seed). Runs with neither are left out (the contract's hint applies)."""
+    """Steps/s measured in ``root`` for each of ``runs`` that has a measurement to go by: its own
+    log's median chunk speed, else the median over every run in the root (begun, running or done)
+    of the same algorithm and settings, any dataset or seed. Runs with neither are left out (the
+    contract's hint applies)."""
     from eabc.experiments import results  # noqa: PLC0415
 
     own: dict[str, float] = {}
-    for run in runs:
-        run_dir = root / RUNS / run.run_id
-        if (run_dir / "log.csv").exists():
-            row, _ = results.read_run(run_dir)
-            speed = row.get("steps_per_s")
-            if isinstance(speed, float) and speed > 0:
-                own[run.run_id] = speed
     by_setting: dict[tuple, list[float]] = {}
-    for run in runs:
-        if run.run_id in own:
-            by_setting.setdefault((run.algo, run.overrides), []).append(own[run.run_id])
+    for spec_file in sorted((root / RUNS).glob(f"*/{SPEC}")):
+        run_dir = spec_file.parent
+        if not (run_dir / "log.csv").exists():
+            continue
+        try:
+            run = RunSpec.from_json(json.loads(spec_file.read_text()))
+        except (OSError, ValueError, KeyError, TypeError):
+            continue  # a broken run is reported elsewhere
+        speed = results.read_run(run_dir)[0].get("steps_per_s")
+        if isinstance(speed, float) and speed > 0:
+            own[run.run_id] = speed
+            by_setting.setdefault((run.algo, run.overrides), []).append(speed)
     out = {}
     for run in runs:
-        speeds = by_setting.get((run.algo, run.overrides))
+        speeds = sorted(by_setting.get((run.algo, run.overrides), []))
         if run.run_id in own:
             out[run.run_id] = own[run.run_id]
         elif speeds:
-            out[run.run_id] = sorted(speeds)[len(speeds) // 2]
+            out[run.run_id] = speeds[len(speeds) // 2]
     return out
 
 
@@ -266,6 +269,16 @@ def parse_duration(text: str) -> float:
     return seconds
 
 
+def job_estimates(job_list: list[list[RunSpec]], root: Path) -> list[float]:
+    """Each job's seconds left (its slowest run's), at the speeds measured in ``root`` so far."""
+    runs = [run for job in job_list for run in job]
+    speeds = measured_speeds(runs, root)
+    return [
+        max(estimate_seconds(r, status(r, root)[1], speeds.get(r.run_id)) for r in job)
+        for job in job_list
+    ]
+
+
 def next_job(pending: list, seconds: list[float], now: float, deadline: float | None) -> int | None:
     """The index of the first pending job whose estimate ends by ``deadline`` (the first one
     when there is no deadline); None when none does. Time only moves on, so a job that does not
@@ -283,15 +296,15 @@ def run_local(
     single_thread: bool = True,
     log=print,
     deadline: float | None = None,
-    job_seconds: list[float] | None = None,
 ) -> None:
     """A pool of ``workers`` subprocesses (default: one per CPU core), one job each at a time.
 
     Every job is ``python -m eabc.experiments.worker ROOT JOB_JSON``; a killed sweep (SIGINT,
     SIGTERM, or SIGKILL, which the workers notice themselves) stops its workers, and the runs
     resume from their checkpoints next time. With a ``deadline`` (``time.time()`` seconds) a job
-    starts only if its estimate (``job_seconds``, in the order of ``job_list``) ends by then; the
-    rest are left for a later sweep and named in the log.
+    starts only if its estimate (:func:`job_estimates`, taken anew whenever a worker is free, so
+    that the runs measured so far set the speeds) ends by then; the rest are left for a later
+    sweep and named in the log.
     """
     from eabc.experiments.worker import PARENT  # noqa: PLC0415
 
@@ -299,7 +312,6 @@ def run_local(
     env = {**os.environ, **(SINGLE_THREAD if single_thread else {}), PARENT: str(os.getpid())}
     previous = _exit_on_sigterm()
     pending = list(job_list)
-    costs = list(job_seconds) if job_seconds is not None else [0.0] * len(pending)
     left_out: list[str] = []
     active: list[tuple[subprocess.Popen, list[RunSpec], Any]] = []
     logs = root / "logs"
@@ -308,16 +320,16 @@ def run_local(
     try:
         while pending or active:
             while pending and len(active) < workers:
-                index = next_job(pending, costs, time.time(), deadline)
-                if index is None:
-                    index = len(pending)
-                for job in pending[:index]:  # they would not finish before the deadline
-                    left_out.append(job[0].group_id if len(job) > 1 else job[0].run_id)
-                del pending[:index], costs[:index]
-                if not pending:
-                    break
+                if deadline is not None:
+                    costs = job_estimates(pending, root)
+                    index = next_job(pending, costs, time.time(), deadline)
+                    index = len(pending) if index is None else index
+                    for job in pending[:index]:  # they would not finish before the deadline
+                        left_out.append(job[0].group_id if len(job) > 1 else job[0].run_id)
+                    del pending[:index]
+                    if not pending:
+                        break
                 job = pending.pop(0)
-                costs.pop(0)
                 name = job[0].group_id if len(job) > 1 else job[0].run_id
                 out = open(logs / f"{name}.log", "ab")  # noqa: SIM115
                 payload = json.dumps([r.to_json() for r in job])
