@@ -80,7 +80,10 @@ def test_the_command_reports_archived_and_live_runs_together(tmp_path):
     main(["report", str(empty), "--include", str(archive), str(live), "--out", str(out)])
     page = (out / "report.md").read_text()
     n_old, n_new = int(old.sum()), int((~old).sum())
-    assert f"{n_old} from `{archive}`" in page and f"{n_new} from `{live}`" in page
+    earlier = "(an earlier report, read back with `--include`)"
+    assert (
+        f"{n_old} from `{archive}` {earlier}" in page and f"{n_new} from `{live}` {earlier}" in page
+    )
     table = (out / "table.md").read_text()
     assert datasets[0] in table and datasets[1] in table
     merged = pd.read_csv(out / "runs.csv").set_index("run_id")

@@ -103,3 +103,16 @@ def test_the_report_compares_with_td3bc_when_it_ran_and_not_otherwise(tmp_path):
     assert "| TD3+BC | hopper-random |" in chosen["comparison.md"].read_text()
     no_td3bc = runs[runs.algo != "td3bc"]
     assert "comparison.md" not in report.write_report(no_td3bc, evaluations, tmp_path / "without")
+
+
+def test_two_runs_get_no_verdict_even_when_both_lie_on_one_side():
+    scores = {
+        ("td3bc", "walker2d-medium"): [69.9, 68.9, 69.4],
+        ("eabc-ln", "walker2d-medium"): [68.7, 68.9],
+    }
+    row = compare.comparison_table(runs_frame(scores), "td3bc").loc[("eabc-ln", "walker2d-medium")]
+    assert row["high"] < row["baseline_mean"]  # both below TD3+BC's mean ...
+    assert row["verdict"] == "-"  # ... but two seeds are too few to say "beyond seed noise"
+    scores[("eabc-ln", "walker2d-medium")].append(68.8)
+    row = compare.comparison_table(runs_frame(scores), "td3bc").loc[("eabc-ln", "walker2d-medium")]
+    assert row["verdict"] == "below"

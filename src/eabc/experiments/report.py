@@ -162,11 +162,13 @@ def write_report(
         sections.append(f"Partial runs, scored on their evaluations so far: {listed}.\n")
     if "source" in runs and runs["source"].nunique() > 1:
         counts = runs["source"].value_counts(sort=False)
+        archived = set(runs.loc[runs["archived"].fillna(False).astype(bool), "source"])
+        kinds = {True: "an earlier report, read back with `--include`", False: "run directories"}
         sections.append(
             "Runs by where they were read: "
-            + ", ".join(f"{n} from `{where}`" for where, n in counts.items())
-            + " (an earlier report's runs.csv, read back with `--include`; a run in several "
-            "counts once, from the copy that trained the most steps).\n"
+            + ", ".join(f"{n} from `{w}` ({kinds[w in archived]})" for w, n in counts.items())
+            + "; a run in several places counts once, from the copy that trained the most "
+            "steps.\n"
         )
     diverged = _diverged_runs(runs)
     if diverged:

@@ -248,8 +248,9 @@ def read_archive(report_dir: str | Path) -> tuple[pd.DataFrame, pd.DataFrame]:
                 "written by `eabc report`"
             )
     runs["variant"] = runs["variant"].fillna("") if "variant" in runs else ""
-    runs["source"] = str(report_dir)
-    return runs.reindex(columns=[*_RUN_COLUMNS, "source"]), evals.reindex(columns=_EVAL_COLUMNS)
+    runs["source"], runs["archived"] = str(report_dir), True
+    columns = [*_RUN_COLUMNS, "source", "archived"]
+    return runs.reindex(columns=columns), evals.reindex(columns=_EVAL_COLUMNS)
 
 
 def merge(
@@ -268,7 +269,7 @@ def merge(
     for index, (runs, evals) in enumerate((live, *archives)):
         runs = runs.copy()
         if "source" not in runs or index == 0:
-            runs["source"] = live_source
+            runs["source"], runs["archived"] = live_source, False
         sources.append((index, runs, evals))
     # An empty frame (a new machine's root) would make every column of the union an object.
     sources = [x for x in sources if not x[1].empty] or sources[:1]
