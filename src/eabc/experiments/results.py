@@ -265,12 +265,8 @@ def merge(
     steps wins, the live run on a tie: a run that a new machine has only begun again does not
     hide the finished one of an earlier session, and a live run that has caught up replaces its
     archived copy. A run's evaluations always come from the same source as its row."""
-    sources = []
-    for index, (runs, evals) in enumerate((live, *archives)):
-        runs = runs.copy()
-        if "source" not in runs or index == 0:
-            runs["source"], runs["archived"] = live_source, False
-        sources.append((index, runs, evals))
+    live_runs = live[0].assign(source=live_source, archived=False)  # archives carry their own
+    sources = [(i, r, e) for i, (r, e) in enumerate(((live_runs, live[1]), *archives))]
     # An empty frame (a new machine's root) would make every column of the union an object.
     sources = [x for x in sources if not x[1].empty] or sources[:1]
     rows = pd.concat([r.assign(_rank=i) for i, r, _ in sources], ignore_index=True)
