@@ -4,6 +4,8 @@ settings; the trained model is saved with the run; learning on Pendulum."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -11,6 +13,7 @@ import pytest
 from handcalc import ACT, OBS, B, member
 from learning import MARGIN, late_gain
 
+from eabc import pytree
 from eabc.agents import dynamics, get_algorithm, mopo, morel
 from eabc.agents.common import Batch
 from eabc.training import chunks, trainer
@@ -86,6 +89,45 @@ def test_dynamics_beats_predicting_the_mean_and_is_deterministic(pendulum_datase
     again, elites_again, _ = dynamics.fit(jax.random.PRNGKey(0), data, config)
     np.testing.assert_array_equal(again["net"]["w1"], params["net"]["w1"])
     np.testing.assert_array_equal(elites_again, elites)
+
+
+class Memory:
+    """A fit's progress kept in memory, through msgpack as a file would keep it."""
+
+    def __init__(self):
+        self.data, self.saves = None, 0
+
+    def load(self):
+        return None if self.data is None else pytree.loads(self.data)
+
+    def save(self, tree):
+        self.data = pytree.dumps(pytree.to_state_dict(jax.device_get(tree)))
+        self.saves += 1
+
+
+def test_a_fit_stopped_between_epochs_continues_to_the_same_members(pendulum_dataset):
+    from eabc.data.dataset import Normalizer
+
+    data = chunks.device_data(pendulum_dataset, Normalizer.fit(pendulum_dataset.observations))
+    config = dynamics.DynamicsConfig(num_members=3, num_elites=2, hidden_dims=(16, 16),
+                                     max_epochs=4, patience=10)  # fmt: skip
+    whole, whole_elites, whole_info = dynamics.fit(jax.random.PRNGKey(0), data, config)
+    memory, lines = Memory(), []
+    first = dataclasses.replace(config, max_epochs=2)  # stopped after its second epoch
+    dynamics.fit(jax.random.PRNGKey(0), data, first, log=lines.append, progress=memory)
+    assert memory.saves == 2
+    lines.clear()
+    params, elites, info = dynamics.fit(
+        jax.random.PRNGKey(0), data, config, log=lines.append, progress=memory
+    )
+    assert "continuing the fit after epoch 2" in lines[0]
+    assert [line.split(":")[0] for line in lines[1:]] == ["dynamics epoch 3", "dynamics epoch 4"]
+    jax.tree.map(np.testing.assert_array_equal, params, whole)
+    np.testing.assert_array_equal(elites, whole_elites)
+    assert info == whole_info
+    lines.clear()  # another key is another fit: what is saved is not continued
+    dynamics.fit(jax.random.PRNGKey(1), data, first, log=lines.append, progress=memory)
+    assert "fitting from the start" in lines[0] and lines[1].startswith("dynamics epoch 1:")
 
 
 def test_model_selection_is_not_decided_by_the_output_with_the_largest_spread():
@@ -303,6 +345,48 @@ def test_a_run_killed_after_its_model_fit_resumes_with_the_fitted_model(tmp_path
     jax.tree.map(
         np.testing.assert_array_equal, resumed.state["agent"].sac, whole.state["agent"].sac
     )
+
+
+class Killed(Exception):
+    """Stands for the process being killed."""
+
+
+def test_a_run_killed_during_its_model_fit_continues_the_fit(
+    tmp_path, pendulum_dataset, monkeypatch, capsys
+):
+    """A kill between two epochs of the fit: the run directory holds the config and the fit's
+    progress; resuming fits only the epochs left and ends with the model of a run not killed."""
+    config = trainer.TrainConfig(algo="morel", steps=100, log_interval=100, eval_interval=100,
+                                 checkpoint_interval=100, eval_episodes=1, env="Pendulum-v1")  # fmt: skip
+    overrides = {**LEARNING, "hidden_dims": (8, 8), "model_max_epochs": 3}
+    whole = trainer.start(config, tmp_path / "whole", overrides, pendulum_dataset)
+    assert not (tmp_path / "whole" / trainer.PRETRAIN_PROGRESS).exists()  # dropped once saved
+
+    def kill_after_first_epoch(text):
+        if text.startswith("dynamics epoch 1:"):
+            raise Killed
+
+    monkeypatch.setattr(mopo, "_log", kill_after_first_epoch)
+    with pytest.raises(Killed):
+        trainer.start(config, tmp_path / "killed", overrides, pendulum_dataset)
+    monkeypatch.undo()
+    killed = tmp_path / "killed"
+    assert (killed / "config.json").exists() and (killed / trainer.PRETRAIN_PROGRESS).exists()
+    assert not (killed / "checkpoint.msgpack").exists()
+    capsys.readouterr()
+    resumed = trainer.resume(killed, pendulum_dataset)
+    err = capsys.readouterr().err
+    assert "continuing the fit after epoch 1" in err
+    assert "dynamics epoch 2:" in err and "dynamics epoch 1:" not in err
+    assert resumed.step == 0 and not (killed / trainer.PRETRAIN_PROGRESS).exists()
+    jax.tree.map(
+        np.testing.assert_array_equal, resumed.state["agent"].model, whole.state["agent"].model
+    )
+    np.testing.assert_array_equal(
+        resumed.state["agent"].halt_threshold, whole.state["agent"].halt_threshold
+    )
+    resumed.lock.release()
+    whole.lock.release()
 
 
 # The learning check's settings, each for a reason seen on this data:

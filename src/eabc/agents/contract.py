@@ -17,7 +17,7 @@ import dataclasses
 import inspect
 import textwrap
 from collections.abc import Callable, Mapping
-from typing import Any, Literal
+from typing import Any, Literal, Protocol
 
 ActorKind = Literal["deterministic", "tanh-gaussian"]
 
@@ -27,6 +27,18 @@ Any other metric (the actor's) is averaged over the steps whose ``actor_updated`
 
 SHORT_NAMES = {"num_critics": "K", "confidence_level": "p"}
 """The paper's symbols, used in run ids (``hopper-medium__eabc__K5__seed0``) and labels."""
+
+
+class PretrainProgress(Protocol):
+    """Where a long ``pretrain`` keeps its progress, so that a killed run continues it: the
+    trainer gives one per run (a file in the run directory, dropped once the fitted state is in
+    the run's checkpoint)."""
+
+    def load(self) -> dict[str, Any] | None:
+        """What the last :meth:`save` stored (nested dicts of arrays and plain values), or None."""
+
+    def save(self, tree: Any) -> None:
+        """Store a pytree of arrays and plain values, atomically."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -50,8 +62,10 @@ class Algorithm:
     """``preprocess(dataset) -> dataset`` before training (e.g. IQL's reward scaling); the run
     keeps the data as loaded."""
     pretrain: Callable[..., Any] | None = None
-    """``pretrain(state, data, key, config, normalizer) -> state``, once before the first step of a
-    new run (e.g. MOPO's dynamics model); what it learns lives in the state, so it is saved."""
+    """``pretrain(state, data, key, config, normalizer, progress) -> state``, once before the
+    first step of a new run (e.g. MOPO's dynamics model); what it learns lives in the state, so it
+    is saved. ``progress`` (a :class:`PretrainProgress`, or None) keeps its progress as it goes:
+    a run killed during the pretraining continues it where it stopped."""
     resolve: Callable[..., Any] | None = None
     """``resolve(config, dataset_name, steps, given) -> config``: settings that depend on the data
     or the run's length (``steps``; None when unknown) (Table 3's p, IQL's schedule), where the user did not set them (``given``

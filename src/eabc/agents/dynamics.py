@@ -25,12 +25,18 @@ would not apply, and its ``log var`` terms reward the outputs with the smallest 
 
 Members are one vectorised network (weights ``[K, in, out]``) like the critic ensembles.
 Observations arrive already normalised by the trainer; actions lie in the action box.
+
+A fit on 1M transitions takes most of an hour on one core, so :func:`fit` can keep its state
+after every epoch (``progress``) and continue from it: each epoch's shuffle depends only on the
+key and the epoch's number, so a fit killed and continued ends with the same members, bit for bit,
+as one that ran through.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
+import json
 from collections.abc import Callable
 
 import jax
@@ -38,8 +44,9 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from eabc import networks
+from eabc import networks, pytree
 from eabc.agents.common import Batch, apply_gradients
+from eabc.agents.contract import PretrainProgress
 
 Params = dict
 
@@ -176,11 +183,14 @@ def fit(
     data: Batch,
     config: DynamicsConfig,
     log: Callable[[str], None] | None = None,
+    progress: PretrainProgress | None = None,
 ) -> tuple[Params, jax.Array, dict[str, float]]:
     """Train an ensemble on ``data`` (one device-resident batch of all transitions).
 
     Returns the best snapshot of every member, the elites' indices (best first) and a summary.
-    Deterministic given ``key``.
+    Deterministic given ``key``. With ``progress`` the fit saves its state after every epoch and
+    starts from what ``progress`` holds when that is a fit of the same key, data size and
+    settings (the stopping rule, ``max_epochs`` and ``patience``, may differ).
     """
     size = data.rewards.shape[0]
     obs_dim, act_dim = data.observations.shape[1], data.actions.shape[1]
@@ -203,6 +213,19 @@ def fit(
     )
     best = np.asarray(error(params, held.observations, held.actions, y_held))
     best_params, since, epoch, losses = params, 0, 0, []
+    signature = _signature(key, size, obs_dim, act_dim, config)
+    saved = progress.load() if progress is not None else None
+    if saved is not None and saved.get("signature") == signature:
+        template = {"params": params, "opt_state": opt_state, "best_params": best_params}
+        restored = pytree.from_state_dict(template, saved)
+        params, opt_state = restored["params"], restored["opt_state"]
+        best_params = restored["best_params"]
+        best, losses = np.asarray(saved["best"]), [float(x) for x in saved["losses"]]
+        since, epoch = int(saved["since"]), int(saved["epoch"])
+        if log is not None:
+            log(f"dynamics: continuing the fit after epoch {epoch} (saved by a run that stopped)")
+    elif saved is not None and log is not None:
+        log("dynamics: the saved fit is of other settings or data; fitting from the start")
     while since <= config.patience and (config.max_epochs is None or epoch < config.max_epochs):
         shuffle = jax.vmap(jax.random.permutation)(
             jax.random.split(jax.random.fold_in(epoch_key, epoch), k), bootstrap
@@ -216,6 +239,12 @@ def fit(
         since = 0 if improved.any() else since + 1
         epoch += 1
         losses.append(float(loss))
+        if progress is not None:
+            progress.save({
+                "signature": signature, "epoch": epoch, "since": since, "best": best,
+                "losses": np.asarray(losses), "params": params, "opt_state": opt_state,
+                "best_params": best_params,
+            })  # fmt: skip
         if log is not None:
             log(f"dynamics epoch {epoch}: train loss {loss:.4f}, held-out error {np.sort(current)}")
     final = np.asarray(error(best_params, held.observations, held.actions, y_held))
@@ -230,6 +259,19 @@ def fit(
         "model_train_loss": losses[-1] if losses else float("nan"),
     }
     return best_params, elites, info
+
+
+def _signature(key, size: int, obs_dim: int, act_dim: int, config: DynamicsConfig) -> str:
+    """What decides a fit's every epoch: a saved fit with another signature is not continued."""
+    settings = dataclasses.asdict(config)
+    for name in ("max_epochs", "patience"):  # when to stop, not what an epoch does
+        settings.pop(name)
+    typed = jnp.issubdtype(key.dtype, jax.dtypes.prng_key)
+    key_data = np.asarray(jax.random.key_data(key) if typed else key)
+    return json.dumps(
+        {"key": key_data.tolist(), "size": size, "obs_dim": obs_dim, "act_dim": act_dim,
+         "settings": settings}, sort_keys=True,
+    )  # fmt: skip
 
 
 FIT_FLOPS_PER_S = 1.0e11

@@ -214,9 +214,12 @@ def init(key: jax.Array, obs_dim: int, act_dim: int, config: MOPOConfig) -> MOPO
     )
 
 
-def pretrain(state: MOPOState, data: Batch, key: jax.Array, config: MOPOConfig, normalizer):
-    """Fit the dynamics ensemble to the (normalised) dataset once, before the policy loop."""
-    model, elites, info = dynamics.fit(key, data, config.model, log=_log)
+def pretrain(
+    state: MOPOState, data: Batch, key: jax.Array, config: MOPOConfig, normalizer, progress=None
+):
+    """Fit the dynamics ensemble to the (normalised) dataset once, before the policy loop
+    (continuing the fit that ``progress`` holds, if any)."""
+    model, elites, info = dynamics.fit(key, data, config.model, log=_log, progress=progress)
     _log(
         f"dynamics: {info['model_epochs']} epochs, elites' held-out error "
         f"{info['model_heldout_error']:.4f} (variance-normalised; predicting the mean: 1), MSE "

@@ -84,9 +84,11 @@ def dataset_disagreement(model, data: Batch, activation: str, chunk: int = 8192)
     return jax.lax.map(jax.jit(one), (obs, act)).reshape(-1)[:size]
 
 
-def pretrain(state: MOPOState, data: Batch, key: jax.Array, config: MOReLConfig, normalizer):
+def pretrain(
+    state: MOPOState, data: Batch, key: jax.Array, config: MOReLConfig, normalizer, progress=None
+):
     """Fit the ensemble (MOPO's :func:`eabc.agents.mopo.pretrain`), then set the threshold."""
-    state = mopo.pretrain(state, data, key, config, normalizer)
+    state = mopo.pretrain(state, data, key, config, normalizer, progress)
     spread = dataset_disagreement(state.model, data, config.model_activation)
     threshold = config.pessimism_coef * spread.max()
     mopo._log(f"MOReL: halting threshold {float(threshold):.4f} ({config.pessimism_coef} x max)")

@@ -57,8 +57,13 @@ def save(run_dir: Path, payload: dict[str, Any], state_layout: int | None = None
     the agent state's layout when given."""
     if state_layout is not None:
         payload = {**payload, LAYOUT: state_layout}
-    data = pytree.dumps(pytree.to_state_dict(jax.device_get(payload)))
-    atomic_write(Path(run_dir) / CHECKPOINT, data + TRAILER + hashlib.sha256(data).digest())
+    write_tree(Path(run_dir) / CHECKPOINT, payload)
+
+
+def write_tree(path: Path, tree: Any) -> None:
+    """A pytree of arrays and plain values as msgpack with its checksum trailer, atomically."""
+    data = pytree.dumps(pytree.to_state_dict(jax.device_get(tree)))
+    atomic_write(Path(path), data + TRAILER + hashlib.sha256(data).digest())
 
 
 _REDO = (
@@ -71,6 +76,28 @@ def load_raw(run_dir: Path) -> dict[str, Any]:
     path = Path(run_dir) / CHECKPOINT
     if not path.exists():
         raise FileNotFoundError(f"no checkpoint in {run_dir}; the run has not saved one yet")
+    raw, checked = _read(path)
+    if not checked:
+        bad = [name for name, leaf in _leaves(raw.get("agent", {})) if not _finite(leaf)]
+        if bad:
+            raise CheckpointError(
+                f"{path} holds NaN/inf in {bad[0]} (an old checkpoint without a checksum, likely "
+                f"corrupt); {_REDO}"
+            )
+    return raw
+
+
+def read_tree(path: Path) -> dict[str, Any]:
+    """What :func:`write_tree` wrote to ``path``, its checksum verified (:class:`CheckpointError`
+    when it does not match or the file is not one of ours)."""
+    raw, checked = _read(Path(path))
+    if not checked:
+        raise CheckpointError(f"{path} has no checksum: it is not a file this package wrote")
+    return raw
+
+
+def _read(path: Path) -> tuple[dict[str, Any], bool]:
+    """The file's nested dicts and whether it carried a checksum (verified)."""
     try:
         data = path.read_bytes()
     except OSError as error:
@@ -88,14 +115,7 @@ def load_raw(run_dir: Path) -> dict[str, Any]:
         ) from None
     if not isinstance(raw, dict):
         raise CheckpointError(f"{path} is not a checkpoint of this package; {_REDO}")
-    if not checked:
-        bad = [name for name, leaf in _leaves(raw.get("agent", {})) if not _finite(leaf)]
-        if bad:
-            raise CheckpointError(
-                f"{path} holds NaN/inf in {bad[0]} (an old checkpoint without a checksum, likely "
-                f"corrupt); {_REDO}"
-            )
-    return raw
+    return raw, checked
 
 
 def load(

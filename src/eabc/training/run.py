@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import shutil
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -149,9 +150,50 @@ def start(
             "max_action": run.max_action,
         },
     )
-    if run.algorithm.pretrain is not None:  # a killed run resumes with what was fitted (hours)
-        checkpoint.save(run_dir, run.state, run.algorithm.state_layout)
+    if run.algorithm.pretrain is not None:
+        try:
+            _pretrain(run)
+        except BaseException:
+            run.lock.release()
+            raise
     return run
+
+
+PRETRAIN_PROGRESS = "pretrain.msgpack"
+"""A run's pretraining progress (MOPO's model fit, epoch by epoch) until its first checkpoint."""
+
+
+@dataclasses.dataclass
+class _FileProgress:
+    """:class:`~eabc.agents.contract.PretrainProgress` in a file of the run directory."""
+
+    path: Path
+
+    def load(self) -> dict[str, Any] | None:
+        if not self.path.exists():
+            return None
+        try:
+            return checkpoint.read_tree(self.path)
+        except checkpoint.CheckpointError as error:
+            print(f"{error}: pretraining from the start", file=sys.stderr, flush=True)
+            return None
+
+    def save(self, tree: Any) -> None:
+        checkpoint.write_tree(self.path, tree)
+
+
+def _pretrain(run: Run) -> None:
+    """The algorithm's one-off pretraining of a run at step 0 (continuing what a killed run saved
+    of it), then the run's first checkpoint: a run killed after it does not pretrain again."""
+    progress = _FileProgress(run.run_dir / PRETRAIN_PROGRESS)
+    data = device_data(prepared(run.algorithm, run.dataset), run.normalizer)
+    init_key, _ = jax.random.split(jax.random.PRNGKey(run.config.seed))
+    run.state["agent"] = run.algorithm.pretrain(
+        run.state["agent"], data, jax.random.fold_in(init_key, 1), run.agent_config,
+        run.normalizer, progress,
+    )  # fmt: skip
+    checkpoint.save(run.run_dir, run.state, run.algorithm.state_layout)
+    progress.path.unlink(missing_ok=True)
 
 
 def _absolute_paths(config: TrainConfig) -> TrainConfig:
@@ -236,7 +278,10 @@ def _resume(run_dir: Path, dataset: Dataset | None, write: bool) -> Run:
         for name in (LOG, SUMMARY, CURVE):
             (run_dir / name).unlink(missing_ok=True)
         shutil.rmtree(run_dir / "tb", ignore_errors=True)
-        return _build(run_dir, config, agent_config, dataset, state=None)
+        run = _build(run_dir, config, agent_config, dataset, state=None)
+        if algorithm.pretrain is not None:
+            _pretrain(run)
+        return run
     return _build(run_dir, config, agent_config, dataset, state="checkpoint")
 
 
@@ -273,11 +318,6 @@ def _build(run_dir, config, agent_config, dataset, state) -> Run:
         "elapsed": 0.0,
         "normalizer": {"mean": normalizer.mean, "std": normalizer.std},
     }
-    if algorithm.pretrain is not None and state is None:  # e.g. MOPO's model; resume loads it
-        data = device_data(prepared(algorithm, dataset), normalizer)
-        fresh["agent"] = algorithm.pretrain(
-            fresh["agent"], data, jax.random.fold_in(init_key, 1), agent_config, normalizer
-        )
     if state == "checkpoint":
         what = f"this {config.algo} run ({_settings_text(algorithm, agent_config)}, {dataset.name})"
         template = {**fresh, "evaluations": None}

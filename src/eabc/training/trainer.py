@@ -33,6 +33,7 @@ from eabc.training.health import (
 from eabc.training.logger import CURVE, RunLogger, plot_curve
 from eabc.training.run import (  # noqa: F401 (the API: trainer.start, trainer.TrainConfig, ...)
     FINAL_EVALUATIONS,
+    PRETRAIN_PROGRESS,
     SUMMARY,
     Run,
     TrainConfig,
