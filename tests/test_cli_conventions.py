@@ -59,6 +59,35 @@ def test_sweep_takes_the_common_train_options_as_flags(tmp_path):
     assert sweep_spec(Sweep(spec=str(spec), eval_episodes=1))["train"] == {"eval_episodes": 1}
 
 
+def test_algos_and_datasets_flags_narrow_a_spec_of_variants(tmp_path):
+    """`--algos td3bc` on a spec of variants runs its td3bc variants only, not every variant plus
+    a plain td3bc; `--datasets` narrows a variant's own dataset list too."""
+    from eabc.experiments.spec import expand  # noqa: PLC0415
+
+    spec = tmp_path / "spec.yaml"
+    spec.write_text(yaml.safe_dump({
+        "datasets": ["hopper-medium", "hopper-random"], "seeds": [0, 1], "steps": 1000,
+        "variants": [
+            {"algo": "td3bc"},
+            {"algo": "eabc", "critic_layer_norm": True},
+            {"algo": "eabc", "confidence_level": 1.0, "datasets": ["hopper-random"]},
+        ],
+    }))  # fmt: skip
+
+    def ids(**flags):
+        return sorted(run.run_id for run in expand(sweep_spec(Sweep(spec=str(spec), **flags))))
+
+    assert ids(algos=("td3bc",), seeds=(2,)) == [
+        "hopper-medium__td3bc__seed2", "hopper-random__td3bc__seed2"
+    ]  # fmt: skip
+    eabc = ids(algos=("eabc",), datasets=("hopper-medium",), seeds=(0,))
+    assert len(eabc) == 1 and "td3bc" not in eabc[0] and "hopper-medium__eabc__" in eabc[0]
+    assert len(ids(algos=("eabc",), datasets=("hopper-random",), seeds=(0,))) == 2
+    bc = ids(algos=("td3bc", "bc"), datasets=("hopper-random",), seeds=(0,))  # bc: no variant
+    assert bc == ["hopper-random__bc__seed0", "hopper-random__td3bc__seed0"]
+    assert len(ids()) == 2 * (2 + 2 + 1)  # no flags: every variant, as the spec says
+
+
 def test_results_on_a_missing_or_empty_root_say_so_in_one_line(tmp_path, capsys):
     with pytest.raises(SystemExit, match=r"error: .*nothing does not exist"):
         main(["results", str(tmp_path / "nothing")])

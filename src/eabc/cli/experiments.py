@@ -34,9 +34,9 @@ class Sweep:
     root: str = "sweeps/default"
     """The sweep's directory (runs, logs, results)."""
     datasets: tuple[str, ...] = ()
-    """Datasets (replace the spec's or preset's)."""
+    """Datasets (replace the spec's or preset's, and narrow its variants' own lists)."""
     algos: tuple[str, ...] = ()
-    """Algorithms (replace the spec's or preset's)."""
+    """Algorithms (replace the spec's or preset's; of its variants, those of these algorithms)."""
     seeds: tuple[int, ...] = ()
     """Seeds (replace the spec's or preset's)."""
     steps: int | None = None
@@ -120,6 +120,30 @@ class Report:
     where."""
 
 
+def _narrow_variants(spec: dict, algos: tuple[str, ...], datasets: tuple[str, ...]) -> dict:
+    """``--algos`` and ``--datasets`` on a spec with ``variants:``: keep the variants of those
+    algorithms, on those datasets (a variant's own ``datasets:`` list too); an algorithm that no
+    variant names runs with its preset settings, as in a spec without variants."""
+    entries = [v if isinstance(v, dict) else {"algo": v} for v in spec["variants"]]
+    if algos:
+        entries = [v for v in entries if v.get("algo") in algos]
+    if datasets:
+        narrowed = []
+        for entry in entries:
+            if "datasets" in entry:
+                own = [d for d in entry["datasets"] if d in datasets]
+                if not own:
+                    continue
+                entry = {**entry, "datasets": own}
+            narrowed.append(entry)
+        entries = narrowed
+    spec = {**spec, "variants": entries}
+    if algos:
+        named = {v["algo"] for v in entries}
+        spec["algos"] = [a for a in algos if a not in named]
+    return spec
+
+
 def sweep_spec(cmd: Sweep) -> dict:
     from eabc.experiments.presets import PRESETS  # noqa: PLC0415
     from eabc.experiments.spec import load_spec  # noqa: PLC0415
@@ -129,7 +153,11 @@ def sweep_spec(cmd: Sweep) -> dict:
         spec = {**PRESETS[cmd.preset]}
     if cmd.spec:
         spec = {**spec, **load_spec(cmd.spec)}
-    for key in ("datasets", "algos", "seeds"):
+    replaced = ["datasets", "algos", "seeds"]
+    if spec.get("variants") and (cmd.algos or cmd.datasets):
+        spec = _narrow_variants(spec, cmd.algos, cmd.datasets)
+        replaced.remove("algos")  # set there: the algorithms that no variant names
+    for key in replaced:
         if getattr(cmd, key):
             spec[key] = list(getattr(cmd, key))
     if cmd.steps is not None:
