@@ -266,10 +266,8 @@ def _signature(key, size: int, obs_dim: int, act_dim: int, config: DynamicsConfi
     settings = dataclasses.asdict(config)
     for name in ("max_epochs", "patience"):  # when to stop, not what an epoch does
         settings.pop(name)
-    typed = jnp.issubdtype(key.dtype, jax.dtypes.prng_key)
-    key_data = np.asarray(jax.random.key_data(key) if typed else key)
     return json.dumps(
-        {"key": key_data.tolist(), "size": size, "obs_dim": obs_dim, "act_dim": act_dim,
+        {"key": np.asarray(jax.random.key_data(key)).tolist(), "size": size, "obs_dim": obs_dim, "act_dim": act_dim,
          "settings": settings}, sort_keys=True,
     )  # fmt: skip
 

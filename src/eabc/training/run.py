@@ -182,12 +182,19 @@ class _FileProgress:
         checkpoint.write_tree(self.path, tree)
 
 
+def _keys(seed: int) -> tuple[jax.Array, jax.Array]:
+    """A run's initialisation key (the agent's, and folded with 1 its pretraining's) and the
+    training loop's key."""
+    init_key, loop_key = jax.random.split(jax.random.PRNGKey(seed))
+    return init_key, loop_key
+
+
 def _pretrain(run: Run) -> None:
     """The algorithm's one-off pretraining of a run at step 0 (continuing what a killed run saved
     of it), then the run's first checkpoint: a run killed after it does not pretrain again."""
     progress = _FileProgress(run.run_dir / PRETRAIN_PROGRESS)
     data = device_data(prepared(run.algorithm, run.dataset), run.normalizer)
-    init_key, _ = jax.random.split(jax.random.PRNGKey(run.config.seed))
+    init_key, _ = _keys(run.config.seed)
     run.state["agent"] = run.algorithm.pretrain(
         run.state["agent"], data, jax.random.fold_in(init_key, 1), run.agent_config,
         run.normalizer, progress,
@@ -308,7 +315,7 @@ def _build(run_dir, config, agent_config, dataset, state) -> Run:
     max_action = float(evaluator.env.action_space.high[0])
     algorithm = get_algorithm(config.algo)
     normalizer = Normalizer.fit(dataset.observations)
-    init_key, loop_key = jax.random.split(jax.random.PRNGKey(config.seed))
+    init_key, loop_key = _keys(config.seed)
     fresh = {
         "agent": _init_agent(
             algorithm.init, init_key, dataset.obs_dim, dataset.act_dim, agent_config
