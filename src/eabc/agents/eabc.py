@@ -214,6 +214,10 @@ PRESETS: dict[str, EABCConfig] = {
         auto_rate=1e-2,
     ),
 }
+PUBLISHED = "eabc"
+"""The published rule (Table 3's p): the side of issue 14's failure tables that fails."""
+RECOMMENDED = "eabc-ln"
+"""Issue 14's recommended variant, the README's first command: what reports set beside it."""
 
 
 @pytree.dataclass

@@ -113,6 +113,11 @@ class Report:
     """Label every other algorithm is compared with, dataset by dataset, in comparison.md
     (mean with its 95% bootstrap interval: above, below or tie); default td3bc when the sweep
     ran it. A label is the algorithm plus its variant, as in the tables (`eabc p=1.0`)."""
+    fix: str | None = None
+    """Label set beside published EABC (label `eabc`) in failures.md, dataset by dataset: where
+    the published rule's critics leave the value range, how far, and the ensemble's spread at
+    the policy's actions as they did, against the same for this label (default eabc-ln, the
+    recommended variant, when the sweep ran it)."""
     include: tuple[str, ...] = ()
     """Earlier reports (directories `eabc report` wrote, e.g. docs/results/study) whose runs join
     ROOT's, so that runs measured on a machine since lost still count. A run in both counts once:
@@ -268,6 +273,7 @@ def run_results(cmd: Results) -> None:
 
 def run_report(cmd: Report) -> None:
     from eabc.experiments import report, results  # noqa: PLC0415
+    from eabc.experiments.labels import labelled  # noqa: PLC0415
 
     if not Path(cmd.root).is_dir() and not cmd.include:
         raise FileNotFoundError(f"{cmd.root} does not exist; give a sweep root or a run directory")
@@ -281,6 +287,13 @@ def run_report(cmd: Report) -> None:
         runs, evaluations = results.merge((runs, evaluations), *archives, live_source=str(cmd.root))
     if runs.empty:
         raise ValueError(f"no runs under {cmd.root}")
+    labels = set(labelled(runs)["label"])
+    for option, label in (("--baseline", cmd.baseline), ("--fix", cmd.fix)):
+        if label is not None and label not in labels:
+            raise ValueError(
+                f"{option} {label}: no runs with that label; labels: {', '.join(sorted(labels))}"
+            )
     out = Path(cmd.out) if cmd.out else Path(cmd.root) / "report"
-    for name, path in report.write_report(runs, evaluations, out, cmd.baseline).items():
+    fix = cmd.fix or report.RECOMMENDED
+    for name, path in report.write_report(runs, evaluations, out, cmd.baseline, fix).items():
         print(f"{name}: {path}")

@@ -15,13 +15,16 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from eabc.agents.eabc import PUBLISHED, RECOMMENDED
 from eabc.experiments import compare
-from eabc.experiments.labels import ABLATION_PARAMETERS, display_name
+from eabc.experiments.labels import ABLATION_PARAMETERS, display_name, labelled
 from eabc.experiments.tables import (
     AVERAGE,
     MIN_RUNS,
     aggregate_table,
     aggregate_to_markdown,
+    failure_table,
+    failure_to_markdown,
     runtime_table,
     runtime_to_markdown,
     score_table,
@@ -94,6 +97,7 @@ def write_report(
     evaluations: pd.DataFrame,
     out_dir: str | Path,
     baseline: str | None = None,
+    fix: str = RECOMMENDED,
 ) -> dict[str, Path]:
     """Every table and figure into ``out_dir``, and ``report.md`` that shows them all.
 
@@ -101,7 +105,10 @@ def write_report(
     ``runtime.png``, ``ablation_PARAMETER.png`` for each parameter that some algorithm's runs vary
     (EABC's first; every figure also as ``.pdf`` and ``.svg``), ``report.md`` and ``report.html``
     (a standalone page), and ``comparison.md``: every label against ``baseline`` (default
-    TD3+BC when the sweep ran it), dataset by dataset. Returns the paths by file name.
+    TD3+BC when the sweep ran it), dataset by dataset; ``failures.md`` when published EABC
+    (label ``eabc``) and ``fix`` both ran: the one beside the other, where the published rule
+    fails and the ensemble's spread at the policy's actions as it did. Returns the paths by file
+    name.
     """
     from eabc.experiments import figures  # noqa: PLC0415 (figures imports this module)
 
@@ -131,6 +138,17 @@ def write_report(
         comparison = [
             f"## Against {display_name(baseline)}, dataset by dataset\n",
             "Also as [comparison.md](comparison.md).\n",
+            text,
+        ]
+    failures = []
+    if {PUBLISHED, fix} <= set(labelled(runs)["label"]):
+        text = failure_to_markdown(
+            failure_table(runs, PUBLISHED, fix, baseline), PUBLISHED, fix, baseline
+        )
+        write("failures.md", text)
+        failures = [
+            f"## Where published EABC fails, beside {display_name(fix)}\n",
+            "Also as [failures.md](failures.md).\n",
             text,
         ]
     paths["curves.png"] = figures.plot_learning_curves(runs, evaluations, out / "curves.png")
@@ -185,6 +203,7 @@ def write_report(
         *([_warning(thin)] if thin else []),
         to_markdown(table),
         *comparison,
+        *failures,
         "## Stability: where the critics fail\n",
         "Per dataset and algorithm: runs whose mean Q left the range the rewards allow, the "
         "first such step, the largest mean Q (median over runs), the ensemble's spread at the "

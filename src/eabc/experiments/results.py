@@ -13,7 +13,9 @@
   rewards allow, a sign of divergence; empty if it never did or the log predates the check),
   ``diverged_step`` (where losses or Q became NaN/inf and training stopped), ``q_mean_max`` (the
   largest logged mean Q), the last log row's ``q_mean, q_ensemble_std, policy_q_std, bc_fraction,
-  auto_p`` (as ``*_last``) and ``config`` (JSON);
+  auto_p`` (as ``*_last``), the last in-range row's ``q_mean, q_ensemble_std, policy_q_std``
+  before the first out-of-range one (as ``*_onset``; empty for a run that stayed in range) and
+  ``config`` (JSON);
 - ``evaluations``: ``run_id, step, score, score_std, return_mean, return_std``.
 
 The run directories are the source of truth (``config.json``, ``log.csv``, ``summary.json``); the
@@ -43,6 +45,9 @@ SETTINGS = tuple(dict.fromkeys(k for a in ALGORITHMS.values() for k in a.report_
 """Algorithm settings kept as columns: what the contracts' ``report_settings`` name."""
 DIAGNOSTICS = ("q_mean", "q_ensemble_std", "policy_q_std", "bc_fraction", "auto_p")
 """Log columns kept from a run's last row (``*_last``): how its critics and BC term ended."""
+ONSET = ("q_mean", "q_ensemble_std", "policy_q_std")
+"""Log columns kept (``*_onset``) from the last row before the critics first left the value
+range: the ensemble's state as the runaway began (a runaway run's last row is long past it)."""
 
 
 def run_dirs(root: Path) -> list[Path]:
@@ -86,17 +91,19 @@ def _read_run(run_dir: Path, run_id: str, config: dict) -> tuple[dict, list[dict
     dataset = config.get("dataset", {}).get("name") or train["dataset"]
     task = tasks.parse_task(dataset)
     evaluations, last_row, out_of_range = [], {}, math.nan
+    onset = {}  # the last row in range before the first row out of range
     q_max = math.nan  # the largest mean Q any logged chunk reached
     rates = []  # each training chunk's steps/s (no evaluation, no checkpoint)
     log = run_dir / LOG
     if log.exists():
         with open(log, newline="") as f:
             for row in csv.DictReader(f):
-                last_row = row
                 q_max = _max(q_max, _num(row.get("q_mean")))
                 rates.append(_num(row.get("steps_per_s")))
                 if _num(row.get("q_out_of_range")) == 1.0 and math.isnan(out_of_range):
                     out_of_range = int(float(row["step"]))
+                    onset = last_row or row  # out of range from the first row: that row
+                last_row = row
                 # An evaluation row has a return; "nan" cells (which resumes of older versions
                 # wrote into empty cells) are no evaluation.
                 if not math.isnan(_num(row.get("return_mean"))):
@@ -135,6 +142,7 @@ def _read_run(run_dir: Path, run_id: str, config: dict) -> tuple[dict, list[dict
         "diverged_step": summary.get("diverged_step", math.nan),
         "q_mean_max": q_max,
         **{f"{k}_last": _num(last_row.get(k)) for k in DIAGNOSTICS},
+        **{f"{k}_onset": _num(onset.get(k)) for k in ONSET},
         "config": json.dumps(config),
     }
     return row, [{"run_id": run_id, **e} for e in evaluations]
@@ -199,7 +207,7 @@ _RUN_COLUMNS = [
     "run_id", "run_dir", "dataset", "env", "kind", "algo", "seed", "variant", *SETTINGS,
     "status", "steps", "steps_target", "wall_time_s", "steps_per_s", "final_score",
     "final_return", "q_out_of_range_step", "diverged_step", "q_mean_max",
-    *(f"{k}_last" for k in DIAGNOSTICS), "config",
+    *(f"{k}_last" for k in DIAGNOSTICS), *(f"{k}_onset" for k in ONSET), "config",
 ]  # fmt: skip
 _EVAL_COLUMNS = ["run_id", "step", "score", "score_std", "return_mean", "return_std"]
 
@@ -247,7 +255,7 @@ def read_archive(report_dir: str | Path) -> tuple[pd.DataFrame, pd.DataFrame]:
                 f"{report_dir / name} lacks the column(s) {', '.join(lacking)}: it was not "
                 "written by `eabc report`"
             )
-    runs["variant"] = runs["variant"].fillna("") if "variant" in runs else ""
+    runs["variant"] = runs["variant"].astype(object).fillna("") if "variant" in runs else ""
     runs["source"], runs["archived"] = str(report_dir), True
     columns = [*_RUN_COLUMNS, "source", "archived"]
     return runs.reindex(columns=columns), evals.reindex(columns=_EVAL_COLUMNS)

@@ -11,6 +11,8 @@ status, steps, wall_time_s, steps_per_s, final_score``), and ``evaluations``, on
 - :func:`runtime_table` (Figure 5's numbers) and :func:`aggregate_table` (median, IQM, mean and
   optimality gap with stratified-bootstrap CIs, from :mod:`eabc.experiments.stats`).
 - :func:`stability_table`: where each algorithm's critics fail, dataset by dataset (issue 14).
+- :func:`failure_table`: published EABC beside the fix, dataset by dataset: where it fails and
+  what the ensemble's spread at the policy's actions was as the runaway began.
 """
 
 from __future__ import annotations
@@ -316,3 +318,104 @@ def stability_to_markdown(table: pd.DataFrame) -> str:
             f"{fmt(r.bc_fraction, '{:.2f}')} |"
         )
     return "\n".join(lines) + "\n"
+
+
+# ----------------------------------------------------------------------------------------------
+# Published EABC beside the fix (issue 14)
+
+
+def _at_onset(group: pd.DataFrame) -> tuple[pd.Series, pd.Series]:
+    """Per run: the ensemble's spread at the policy's actions relative to |mean Q|, and that
+    spread over the spread at the data's actions, at the last log row before the critics left the
+    value range (runs that ran away), else at the last row (runs that stayed in range)."""
+
+    def column(name: str) -> pd.Series:
+        values = group[name] if name in group else pd.Series(math.nan, index=group.index)
+        return pd.to_numeric(values, errors="coerce")
+
+    ran_away = column("q_out_of_range_step").notna()
+    state = {
+        k: column(f"{k}_onset").where(ran_away, column(f"{k}_last"))
+        for k in ("q_mean", "q_ensemble_std", "policy_q_std")
+    }
+    return (
+        state["policy_q_std"] / state["q_mean"].abs(),
+        state["policy_q_std"] / state["q_ensemble_std"],
+    )
+
+
+def failure_table(
+    runs: pd.DataFrame, published: str, fix: str, baseline: str | None = None
+) -> pd.DataFrame:
+    """Published EABC (label ``published``) beside the fix (label ``fix``), one row per dataset
+    that has runs of both: for each, ``{side}_runs``, ``{side}_score`` (mean final score),
+    ``{side}_out_of_range`` (runs whose mean Q left the value range the rewards allow),
+    ``{side}_first_out`` (the earliest such step), ``{side}_q_max`` (median over runs of the
+    largest mean Q), ``{side}_spread`` and ``{side}_ratio`` (medians of :func:`_at_onset`: the
+    spread at the policy's actions as the runaway began, or at the end of a run in range); and
+    ``baseline_score`` (the mean final score of label ``baseline``, when given and run)."""
+    runs = labelled(runs)
+    labels = set(runs["label"])
+    for name, label in (("published", published), ("fix", fix)):
+        if label not in labels:
+            raise ValueError(
+                f"no runs labelled {label!r} (the {name} side); labels: {', '.join(sorted(labels))}"
+            )
+    rows = []
+    for dataset in sorted(set(runs["dataset"]), key=dataset_sort_key):
+        here = runs[runs["dataset"] == dataset]
+        sides = {"published": here[here["label"] == published], "fix": here[here["label"] == fix]}
+        if any(group.empty for group in sides.values()):
+            continue
+        row = {"dataset": dataset}
+        if baseline is not None:
+            scores = pd.to_numeric(here.loc[here["label"] == baseline, "final_score"], "coerce")
+            row["baseline_score"] = scores.mean()
+        for side, group in sides.items():
+            out = pd.to_numeric(group["q_out_of_range_step"], errors="coerce")
+            spread, ratio = _at_onset(group)
+            row |= {
+                f"{side}_runs": len(group),
+                f"{side}_score": pd.to_numeric(group["final_score"], errors="coerce").mean(),
+                f"{side}_out_of_range": int(out.notna().sum()),
+                f"{side}_first_out": out.min(),
+                f"{side}_q_max": pd.to_numeric(group["q_mean_max"], errors="coerce").median(),
+                f"{side}_spread": spread.median(),
+                f"{side}_ratio": ratio.median(),
+            }
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def failure_to_markdown(table: pd.DataFrame, published: str, fix: str, baseline: str | None) -> str:
+    def fmt(value, pattern):
+        return "" if is_missing(value) or not np.isfinite(value) else pattern.format(value)
+
+    side_columns = ["score", "out of range", "first step out", "max mean Q", "spread at pi",
+                    "spread ratio"]  # fmt: skip
+    head = ["Dataset", *([f"{display_name(baseline)} score"] if baseline else [])]
+    for label in (published, fix):
+        head += [f"{display_name(label)}: {c}" if i == 0 else c for i, c in enumerate(side_columns)]
+    lines = ["| " + " | ".join(head) + " |", "|---" + "|---:" * (len(head) - 1) + "|"]
+    for r in table.to_dict("records"):
+        cells = [r["dataset"], *([fmt(r.get("baseline_score"), "{:.1f}")] if baseline else [])]
+        for side in ("published", "fix"):
+            cells += [
+                fmt(r[f"{side}_score"], "{:.1f}"),
+                f"{r[f'{side}_out_of_range']}/{r[f'{side}_runs']}",
+                fmt(r[f"{side}_first_out"], "{:,.0f}"),
+                fmt(r[f"{side}_q_max"], "{:,.0f}"),
+                fmt(r[f"{side}_spread"], "{:.2%}"),
+                fmt(r[f"{side}_ratio"], "{:.2f}"),
+            ]
+        lines.append("| " + " | ".join(cells) + " |")
+    note = (
+        f"\n{display_name(published)} beside {display_name(fix)}, dataset by dataset: mean final "
+        "score; runs whose mean Q left the value range the rewards allow, and the earliest step "
+        "it did; the largest mean Q (median over runs); the ensemble's spread at the policy's "
+        "actions relative to |mean Q| and over its spread at the data's actions (the spread "
+        "ratio: above 1 the policy acts where the ensemble is less sure than on the data), both "
+        "at the last log row before the runaway (at the end for a run that stayed in range), "
+        "median over runs.\n"
+    )
+    return "\n".join(lines) + "\n" + note
