@@ -104,6 +104,11 @@ def test_checkpoint_is_msgpack_and_policy_api_matches_training(tmp_path, pendulu
     np.testing.assert_allclose(np.stack([policy(o) for o in obs]), expected, rtol=1e-6)
     for name in ("config.json", "log.csv", "curve.png", "summary.json"):
         assert (tmp_path / "run" / name).exists()
+    # Every run file has the mode open() gives under the umask (mkstemp's 0600 hid them from the
+    # group a team shares run directories with).
+    expected_mode = checkpoint.file_mode()
+    for name in ("config.json", "log.csv", "summary.json", checkpoint.CHECKPOINT):
+        assert (tmp_path / "run" / name).stat().st_mode & 0o777 == expected_mode, name
 
 
 def test_existing_run_dir_is_not_overwritten(tmp_path, pendulum_dataset):
@@ -288,3 +293,17 @@ def test_two_resumes_within_one_second_keep_both_event_files(tmp_path, monkeypat
     assert_tensorboard_equals_log(run_dir)
     points, _ = _tensorboard_points(run_dir)
     assert points["score"] == [(100, 100.0), (200, 200.0), (300, 301.0), (400, 400.0)]
+
+
+def test_file_mode_follows_the_umask(tmp_path):
+    import os  # noqa: PLC0415
+
+    old = os.umask(0o027)
+    try:
+        assert checkpoint.file_mode() == 0o640
+        checkpoint.atomic_write(tmp_path / "f", b"x")
+        assert (tmp_path / "f").stat().st_mode & 0o777 == 0o640
+        os.umask(0o022)
+        assert checkpoint.file_mode() == 0o644
+    finally:
+        os.umask(old)

@@ -36,7 +36,7 @@ import pandas as pd
 
 from eabc.agents import ALGORITHMS
 from eabc.data import tasks
-from eabc.training.checkpoint import CONFIG
+from eabc.training.checkpoint import CONFIG, file_mode
 from eabc.training.logger import LOG
 from eabc.training.trainer import FINAL_EVALUATIONS, SUMMARY
 
@@ -191,6 +191,7 @@ def collect(root: str | Path, write: bool = True) -> tuple[pd.DataFrame, pd.Data
     evals = pd.DataFrame(evaluations, columns=_EVAL_COLUMNS)
     if write and root.is_dir():
         fd, tmp = tempfile.mkstemp(dir=root, prefix=f".{DATABASE}.", suffix=".tmp")
+        os.fchmod(fd, file_mode())  # as open() would, not mkstemp's 0600
         os.close(fd)
         try:
             with sqlite3.connect(tmp) as db:

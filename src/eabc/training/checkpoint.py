@@ -36,12 +36,29 @@ class CheckpointError(ValueError):
     """A checkpoint that cannot be used; the message names the file and what to do."""
 
 
+def file_mode() -> int:
+    """The mode ``open()`` gives a new file under this process's umask (0644 under the usual
+    022). ``mkstemp`` makes its files 0600 whatever the umask, which left run files unreadable to
+    the group a team shares run directories with; the writers set this mode instead."""
+    try:  # Linux: read it without changing it (changing it races other threads' new files)
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return 0o666 & ~int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
 def atomic_write(path: Path, data: bytes) -> None:
     """Write ``data`` to a temporary file of a unique name beside ``path``, then rename it over
-    ``path``: a reader sees the old file or the new one, never a mix, whoever else is writing."""
+    ``path``: a reader sees the old file or the new one, never a mix, whoever else is writing.
+    The file gets the mode a plain ``open()`` would (:func:`file_mode`)."""
     path = Path(path)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
+        os.fchmod(fd, file_mode())
         with os.fdopen(fd, "wb") as f:
             f.write(data)
             f.flush()
