@@ -208,6 +208,7 @@ def test_the_failure_table_sets_published_eabc_beside_the_fix(tmp_path):
             "q_mean_onset": [200.0, 400.0, nan, nan, nan, nan],
             "q_ensemble_std_onset": [2.0, 2.0, nan, nan, nan, nan],
             "policy_q_std_onset": [4.0, 12.0, nan, nan, nan, nan],
+            "bc_fraction_last": [0.25, 0.25, 1.0, 1.0, 1.0, 0.25],
             "status": ["done"] * 6,
             "steps": [100_000] * 6,
             "steps_per_s": [80.0, 80.0, 40.0, 40.0, 300.0, 80.0],
@@ -225,7 +226,7 @@ def test_the_failure_table_sets_published_eabc_beside_the_fix(tmp_path):
     assert math.isclose(row["fix_ratio"], (0.8 + 1.2) / 2)  # at the last rows: in range
     text = tables.failure_to_markdown(table, "eabc", "eabc-ln", "td3bc")
     assert (
-        "| hopper-medium | 48.0 | 7.0 | 2/2 | 11,000 | 3,000,000 | 2.50% | 4.00 | 52.0 | 0/2 |"
+        "| hopper-medium | 48.0 | 7.0 | 2/2 | 11,000 | 3,000,000 | 2.50% | 4.00 | 0.25 | 52.0 | 0/2 |"
         in text
     )
     with pytest.raises(ValueError, match="eabc-lnn"):

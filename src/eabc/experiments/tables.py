@@ -352,7 +352,8 @@ def failure_table(
     ``{side}_out_of_range`` (runs whose mean Q left the value range the rewards allow),
     ``{side}_first_out`` (the earliest such step), ``{side}_q_max`` (median over runs of the
     largest mean Q), ``{side}_spread`` and ``{side}_ratio`` (medians of :func:`_at_onset`: the
-    spread at the policy's actions as the runaway began, or at the end of a run in range); and
+    spread at the policy's actions as the runaway began, or at the end of a run in range),
+    ``{side}_bc`` (median BC fraction at the last row); and
     ``baseline_score`` (the mean final score of label ``baseline``, when given and run)."""
     runs = labelled(runs)
     labels = set(runs["label"])
@@ -382,6 +383,9 @@ def failure_table(
                 f"{side}_q_max": pd.to_numeric(group["q_mean_max"], errors="coerce").median(),
                 f"{side}_spread": spread.median(),
                 f"{side}_ratio": ratio.median(),
+                f"{side}_bc": pd.to_numeric(group.get("bc_fraction_last"), "coerce").median()
+                if "bc_fraction_last" in group
+                else math.nan,
             }
         rows.append(row)
     return pd.DataFrame(rows)
@@ -392,7 +396,7 @@ def failure_to_markdown(table: pd.DataFrame, published: str, fix: str, baseline:
         return "" if is_missing(value) or not np.isfinite(value) else pattern.format(value)
 
     side_columns = ["score", "out of range", "first step out", "max mean Q", "spread at pi",
-                    "spread ratio"]  # fmt: skip
+                    "spread ratio", "BC fraction"]  # fmt: skip
     head = ["Dataset", *([f"{display_name(baseline)} score"] if baseline else [])]
     for label in (published, fix):
         head += [f"{display_name(label)}: {c}" if i == 0 else c for i, c in enumerate(side_columns)]
@@ -407,6 +411,7 @@ def failure_to_markdown(table: pd.DataFrame, published: str, fix: str, baseline:
                 fmt(r[f"{side}_q_max"], "{:,.0f}"),
                 fmt(r[f"{side}_spread"], "{:.2%}"),
                 fmt(r[f"{side}_ratio"], "{:.2f}"),
+                fmt(r[f"{side}_bc"], "{:.2f}"),
             ]
         lines.append("| " + " | ".join(cells) + " |")
     note = (
@@ -416,6 +421,7 @@ def failure_to_markdown(table: pd.DataFrame, published: str, fix: str, baseline:
         "actions relative to |mean Q| and over its spread at the data's actions (the spread "
         "ratio: above 1 the policy acts where the ensemble is less sure than on the data), both "
         "at the last log row before the runaway (at the end for a run that stayed in range), "
-        "median over runs.\n"
+        "median over runs; the share of samples with the BC term on (Table 3's p for published "
+        "EABC), at the last row.\n"
     )
     return "\n".join(lines) + "\n" + note
