@@ -10,6 +10,7 @@ import dataclasses
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -352,3 +353,23 @@ def _alive(pid: int) -> bool:
             return f.read().split()[2] != "Z"
     except FileNotFoundError:
         return False
+
+
+def test_in_use_reads_the_owner_note_without_taking_the_lock(tmp_path):
+    from eabc.training.lock import RunLock, in_use
+
+    run_dir = tmp_path / "run"
+    assert not in_use(run_dir)  # no directory, no note
+    lock = RunLock(run_dir).acquire()
+    assert in_use(run_dir) and lock.held  # probing did not take it from its holder
+    lock.release()
+    assert not in_use(run_dir)
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    note = {"pid": dead.pid, "host": socket.gethostname(), "since": "", "command": ""}
+    (run_dir / OWNER).write_text(json.dumps(note))
+    assert not in_use(run_dir)  # a killed holder's note on this host does not count
+    (run_dir / OWNER).write_text(json.dumps({**note, "host": "elsewhere"}))
+    assert in_use(run_dir)  # another host's process cannot be checked: assume it runs
+    (run_dir / OWNER).write_text("{not json")
+    assert not in_use(run_dir)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 
+import pandas as pd
 import pytest
 
 from eabc.agents import get_algorithm
@@ -193,3 +194,54 @@ def test_runs_an_earlier_report_holds_as_done_are_not_run_again(tmp_path, capsys
     assert f"1 runs done in {archive}: not run again" in out
     assert "2 runs in" in out and _run(seed=0).run_id not in out
     assert _run(seed=1).run_id in out and _run(seed=2).run_id in out
+
+
+def test_a_run_another_root_has_done_or_is_training_is_left_to_it(
+    tmp_path, capsys, pendulum_dataset
+):
+    import os
+    import socket
+
+    import yaml
+
+    from eabc.data.loaders import save_npz
+    from eabc.experiments import results
+    from eabc.experiments.spec import expand
+    from eabc.training.lock import OWNER
+
+    data = tmp_path / "pend.npz"
+    save_npz(pendulum_dataset, data)
+    spec = tmp_path / "spec.yaml"
+    spec.write_text(
+        f"datasets: [{data}]\nalgos: [td3bc]\nseeds: [0, 1, 2]\nsteps: 300\n"
+        "train: {eval_interval: 300, eval_episodes: 1, log_interval: 100, env: Pendulum-v1}\n"
+    )
+    done, busy, free = expand(yaml.safe_load(spec.read_text()))
+    other = tmp_path / "other"  # the second core's root
+    run_dir = other / sweep.RUNS / done.run_id
+    run_dir.mkdir(parents=True)
+    train = {"algo": "td3bc", "seed": 0, "steps": 300, "dataset": str(data)}
+    (run_dir / "config.json").write_text(json.dumps({"train": train, "agent": {}}))
+    (run_dir / sweep.SPEC).write_text(json.dumps({"run_id": done.run_id, **done.to_json()}))
+    (run_dir / "log.csv").write_text("step,q_mean,return_mean,score\n300,1.0,-500.0,42.0\n")
+    (run_dir / "summary.json").write_text(json.dumps({"steps": 300}))
+    (other / sweep.RUNS / busy.run_id).mkdir()  # begun there by a live process (this one)
+    owner = {"pid": os.getpid(), "host": socket.gethostname(), "since": "", "command": ""}
+    (other / sweep.RUNS / busy.run_id / OWNER).write_text(json.dumps(owner))
+
+    root = tmp_path / "root"
+    main(["sweep", str(spec), "--root", str(root), "--include", str(other), "--workers", "1"])
+    out = capsys.readouterr().out
+    assert f"1 runs done in {other}: not run again" in out
+    assert f"not starting {busy.run_id}: being trained in {other}" in out
+    assert sorted(p.name for p in (root / sweep.RUNS).iterdir()) == [free.run_id]
+    assert sweep.status(free, root)[0] == "done"
+
+    # The report stands on both roots: the other's finished run with its score.
+    runs, _ = results.read_archive(other)
+    assert list(runs["run_id"]) == [f"{sweep.RUNS}/{done.run_id}"]
+    assert runs["final_score"].iloc[0] == 42.0 and runs["source"].iloc[0] == str(other)
+    main(["report", str(root), "--include", str(other), "--out", str(tmp_path / "report")])
+    merged = pd.read_csv(tmp_path / "report" / "runs.csv")
+    assert sorted(merged["seed"]) == [0, 2]
+    assert f"1 from `{other}` (run directories)" in (tmp_path / "report" / "report.md").read_text()

@@ -60,9 +60,11 @@ class Sweep:
     dry_run: bool = False
     """List the runs, their state and the estimated cost, then stop."""
     include: tuple[str, ...] = ()
-    """Earlier reports (directories `eabc report` wrote, e.g. docs/results/study): runs they hold
-    as done, at the spec's steps, are not run again here (give the same to `eabc report
-    --include` to report them with ROOT's)."""
+    """Earlier reports (directories `eabc report` wrote, e.g. docs/results/study) or other sweep
+    roots on this machine: runs they hold as done, at the spec's steps, are not run again here,
+    nor runs another root is training when their turn comes (so one sweep per core, each in its
+    own root, never trains a run twice). Give the same to `eabc report --include` to report them
+    with ROOT's."""
     within: str | None = None
     """Start only the runs whose estimate (as --dry-run shows it) ends within this time from now,
     e.g. 150m or 2.5h; the others wait for a later sweep. For machines that are not kept: a run
@@ -119,8 +121,9 @@ class Report:
     the policy's actions as they did, against the same for this label (default eabc-ln, the
     recommended variant, when the sweep ran it)."""
     include: tuple[str, ...] = ()
-    """Earlier reports (directories `eabc report` wrote, e.g. docs/results/study) whose runs join
-    ROOT's, so that runs measured on a machine since lost still count. A run in both counts once:
+    """Earlier reports (directories `eabc report` wrote, e.g. docs/results/study) or other sweep
+    roots whose runs join ROOT's, so that runs measured on a machine since lost, or in another
+    root, still count. A run in both counts once:
     the copy that trained more steps, ROOT's on a tie. report.md says how many runs came from
     where."""
 
@@ -238,9 +241,13 @@ def run_sweep(cmd: Sweep) -> None:
         if cmd.backend == "ray":
             sweep.run_ray(job_list, root, cmd.ray_address, cmd.cpus_per_job, cmd.gpus_per_job)
         else:
+            others = [
+                Path(d) for d in cmd.include if not (Path(d) / results.ARCHIVE_FILES[0]).is_file()
+            ]
             sweep.run_local(
                 job_list, root, cmd.workers, single_thread=layout == "processes",
                 deadline=deadline,
+                taken=(lambda run: sweep.taken_elsewhere(run, others)) if others else None,
             )  # fmt: skip
     finally:
         table, _ = results.collect(root)

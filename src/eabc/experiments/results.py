@@ -229,22 +229,28 @@ ARCHIVE_FILES = ("runs.csv", "evaluations.csv")
 """What an earlier ``eabc report`` wrote that :func:`read_archive` reads back."""
 
 
-def read_archive(report_dir: str | Path) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """The runs and evaluations of an earlier report (its ``runs.csv`` and ``evaluations.csv``).
+def read_archive(path: str | Path) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """The runs and evaluations of an earlier report (its ``runs.csv`` and ``evaluations.csv``),
+    or of another sweep root's run directories.
 
     A sweep root lives on one machine and is lost with it; the report committed to the repository
     is what survives. Reading it back lets the next session's report stand on every run measured
-    so far, not only on the run directories still on disk (:func:`merge`). Each row's ``source``
-    says where it came from."""
-    report_dir = Path(report_dir)
-    missing = [name for name in ARCHIVE_FILES if not (report_dir / name).is_file()]
+    so far, not only on the run directories still on disk (:func:`merge`). Another root on the
+    same machine (a second core's sweep of other runs) is read from its run directories, its
+    broken runs left out. Each row's ``source`` says where it came from."""
+    path = Path(path)
+    missing = [name for name in ARCHIVE_FILES if not (path / name).is_file()]
+    if missing and path.is_dir() and run_dirs(path):
+        runs, evals = collect(path, write=False)
+        runs = runs[runs["status"] != "broken"].assign(source=str(path), archived=False)
+        return runs.reindex(columns=[*_RUN_COLUMNS, "source", "archived"]), evals
     if missing:
         raise FileNotFoundError(
-            f"{report_dir} has no {' or '.join(missing)}: give a directory that `eabc report` "
-            "wrote (its --out)"
+            f"{path} has no {' or '.join(missing)} and no run directories: give a directory "
+            "that `eabc report` wrote (its --out) or a sweep root"
         )
-    runs = pd.read_csv(report_dir / "runs.csv", keep_default_na=False, na_values=[""])
-    evals = pd.read_csv(report_dir / "evaluations.csv")
+    runs = pd.read_csv(path / "runs.csv", keep_default_na=False, na_values=[""])
+    evals = pd.read_csv(path / "evaluations.csv")
     needed = {
         "runs.csv": (runs, ["run_id", "dataset", "algo", "seed", "status", "steps", "final_score"]),
         "evaluations.csv": (evals, ["run_id", "step", "score"]),
@@ -253,11 +259,11 @@ def read_archive(report_dir: str | Path) -> tuple[pd.DataFrame, pd.DataFrame]:
         lacking = [c for c in columns if c not in frame.columns]
         if lacking:
             raise ValueError(
-                f"{report_dir / name} lacks the column(s) {', '.join(lacking)}: it was not "
+                f"{path / name} lacks the column(s) {', '.join(lacking)}: it was not "
                 "written by `eabc report`"
             )
     runs["variant"] = runs["variant"].astype(object).fillna("") if "variant" in runs else ""
-    runs["source"], runs["archived"] = str(report_dir), True
+    runs["source"], runs["archived"] = str(path), True
     columns = [*_RUN_COLUMNS, "source", "archived"]
     return runs.reindex(columns=columns), evals.reindex(columns=_EVAL_COLUMNS)
 

@@ -254,6 +254,21 @@ def archived_done(runs: list[RunSpec], archives: list[tuple[Any, Any]]) -> set[s
     }
 
 
+def taken_elsewhere(run: RunSpec, roots: list[Path]) -> str | None:
+    """Why another sweep root (``--include ROOT`` on the same machine) has ``run`` in hand: done
+    there at the spec's steps, or being trained there now; None if neither. Asked again just
+    before each job starts, so two sweeps that share runs (one per core, each in its own root)
+    never train the same run twice, even when one reaches it after the other began."""
+    from eabc.training.lock import in_use  # noqa: PLC0415
+
+    for other in roots:
+        if status(run, other)[0] == "done":
+            return f"done in {other}"
+        if in_use(other / RUNS / run.run_id):
+            return f"being trained in {other}"
+    return None
+
+
 def parse_duration(text: str) -> float:
     """Seconds in ``90s``, ``45m``, ``2.5h`` (a bare number is minutes)."""
     units = {"s": 1.0, "m": 60.0, "h": 3600.0}
@@ -296,6 +311,7 @@ def run_local(
     single_thread: bool = True,
     log=print,
     deadline: float | None = None,
+    taken: Any = None,
 ) -> None:
     """A pool of ``workers`` subprocesses (default: one per CPU core), one job each at a time.
 
@@ -304,7 +320,8 @@ def run_local(
     resume from their checkpoints next time. With a ``deadline`` (``time.time()`` seconds) a job
     starts only if its estimate (:func:`job_estimates`, taken anew whenever a worker is free, so
     that the runs measured so far set the speeds) ends by then; the rest are left for a later
-    sweep and named in the log.
+    sweep and named in the log. ``taken(run)`` (e.g. :func:`taken_elsewhere`), asked as a job is
+    about to start, says why a run is not to be trained here after all (None: train it).
     """
     from eabc.experiments.worker import PARENT  # noqa: PLC0415
 
@@ -330,6 +347,14 @@ def run_local(
                     if not pending:
                         break
                 job = pending.pop(0)
+                if taken is not None:
+                    reasons = {run.run_id: taken(run) for run in job}
+                    for run_id, why in reasons.items():
+                        if why:
+                            log(f"not starting {run_id}: {why}")
+                    job = [run for run in job if not reasons[run.run_id]]
+                    if not job:
+                        continue
                 name = job[0].group_id if len(job) > 1 else job[0].run_id
                 out = open(logs / f"{name}.log", "ab")  # noqa: SIM115
                 payload = json.dumps([r.to_json() for r in job])

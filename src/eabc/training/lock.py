@@ -65,6 +65,27 @@ class RunLock:
         self.release()
 
 
+def in_use(run_dir: str | Path) -> bool:
+    """Whether a live process holds ``run_dir``'s lock, read from its owner note without taking
+    the lock (a probe that took it could make a run starting that instant fail). A note left by
+    a killed process on this host does not count; one from another host (a shared filesystem)
+    does, as its process cannot be checked from here."""
+    try:
+        owner = json.loads((Path(run_dir) / OWNER).read_text())
+        pid, host = int(owner["pid"]), owner["host"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return False
+    if host != socket.gethostname():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # alive, another user's
+        return True
+    return True
+
+
 def holder(run_dir: Path) -> str:
     """Who holds ``run_dir``'s lock, in words."""
     try:
