@@ -104,3 +104,12 @@ def test_what_is_not_a_report_is_refused_with_what_to_give(tmp_path):
         results.read_archive(tmp_path)
     with pytest.raises(SystemExit, match="does not exist"):
         main(["report", str(tmp_path / "nothing")])
+
+
+def test_another_sweep_root_is_read_from_its_run_directories_even_before_its_first_run(tmp_path):
+    root = tmp_path / "sweeps" / "b"
+    (root / "runs").mkdir(parents=True)  # begun, no run directory yet
+    runs, evaluations = results.read_archive(root)
+    assert runs.empty and evaluations.empty and "source" in runs
+    with pytest.raises(FileNotFoundError, match="or a sweep root"):
+        results.read_archive(tmp_path / "sweeps")  # neither a report nor a root

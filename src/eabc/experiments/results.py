@@ -240,7 +240,8 @@ def read_archive(path: str | Path) -> tuple[pd.DataFrame, pd.DataFrame]:
     broken runs left out. Each row's ``source`` says where it came from."""
     path = Path(path)
     missing = [name for name in ARCHIVE_FILES if not (path / name).is_file()]
-    if missing and path.is_dir() and run_dirs(path):
+    # A sweep root: run directories, or its runs/ folder before the first run writes one.
+    if missing and path.is_dir() and ((path / "runs").is_dir() or run_dirs(path)):
         runs, evals = collect(path, write=False)
         runs = runs[runs["status"] != "broken"].assign(source=str(path), archived=False)
         return runs.reindex(columns=[*_RUN_COLUMNS, "source", "archived"]), evals
