@@ -113,3 +113,21 @@ def test_another_sweep_root_is_read_from_its_run_directories_even_before_its_fir
     assert runs.empty and evaluations.empty and "source" in runs
     with pytest.raises(FileNotFoundError, match="or a sweep root"):
         results.read_archive(tmp_path / "sweeps")  # neither a report nor a root
+
+
+def test_finished_leaves_out_the_runs_still_training(tmp_path, capsys):
+    runs, evaluations = make_results()
+    runs = runs.copy()
+    still = runs["run_id"].iloc[0]
+    runs.loc[runs.index[0], ["status", "steps"]] = ["partial", 5000]
+    archive = _archive(tmp_path, runs, evaluations)
+    out = tmp_path / "out"
+    main(["report", str(tmp_path / "none"), "--include", str(archive), "--out", str(out),
+          "--finished"])  # fmt: skip
+    assert "leaving out 1 runs not finished yet" in capsys.readouterr().out
+    written = pd.read_csv(out / "runs.csv")
+    assert still not in set(written["run_id"]) and len(written) == len(runs) - 1
+    assert still not in set(pd.read_csv(out / "evaluations.csv")["run_id"])
+    assert "0 partial" in (out / "report.md").read_text()
+    main(["report", str(tmp_path / "none"), "--include", str(archive), "--out", str(out)])
+    assert still in set(pd.read_csv(out / "runs.csv")["run_id"])  # without it, kept

@@ -11,9 +11,9 @@
 # decides the done-means (study-first.yaml: TD3+BC, eabc-ln), core 2 published EABC and EABC
 # p = 1 (`--preset study --algos eabc`); each goes on to the other's list when its own is done.
 # A run starts only if its estimate ends in time (`--within`; speeds from the runs measured so
-# far). At the end of the session (first remove run directories with no evaluation yet):
+# far). During the session and at its end (--finished: runs still training stay out):
 #
-#   eabc report sweeps/study --include sweeps/study-b docs/results/study --out docs/results/study
+#   eabc report sweeps/study --include sweeps/study-b docs/results/study --out docs/results/study --finished
 set -euo pipefail
 cd "$(dirname "$0")/../../.."
 deadline=$(date -u -d "${1:?give the UTC time by which runs must end, e.g. 16:05}" +%s)

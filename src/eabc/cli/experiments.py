@@ -126,6 +126,10 @@ class Report:
     root, still count. A run in both counts once:
     the copy that trained more steps, ROOT's on a tie. report.md says how many runs came from
     where."""
+    finished: bool = False
+    """Leave out the runs that have not reached their steps yet (partial), e.g. to commit a
+    report while its sweep still runs: a partial run would be scored on its evaluations so far,
+    and its row would stand in the committed report until a later copy trained more."""
 
 
 def _narrow_variants(spec: dict, algos: tuple[str, ...], datasets: tuple[str, ...]) -> dict:
@@ -292,6 +296,12 @@ def run_report(cmd: Report) -> None:
     if cmd.include:
         archives = [results.read_archive(d) for d in cmd.include]
         runs, evaluations = results.merge((runs, evaluations), *archives, live_source=str(cmd.root))
+    if cmd.finished:
+        partial = runs["status"] == "partial"
+        if partial.any():
+            print(f"leaving out {int(partial.sum())} runs not finished yet (--finished)")
+        runs = runs[~partial]
+        evaluations = evaluations[evaluations["run_id"].isin(runs["run_id"])]
     if runs.empty:
         raise ValueError(f"no runs under {cmd.root}")
     labels = set(labelled(runs)["label"])
