@@ -23,7 +23,13 @@ python -m pip install -q -e . >> "$log" 2>&1
 (for d in hopper-medium halfcheetah-medium hopper-random; do eabc data make "$d"; done) >> "$log" 2>&1 &
 (for d in walker2d-medium hopper-medium-replay; do eabc data make "$d"; done) >> "$log" 2>&1 &
 wait
-[ -d /work/study-code ] || git worktree add --detach /work/study-code HEAD >> "$log" 2>&1
+# the code at this commit (a worktree left by an earlier session is moved here: its sweeps would
+# not know this commit's options, e.g. --include of a root)
+if [ -d /work/study-code ]; then
+  git -C /work/study-code checkout -q --detach "$(git rev-parse HEAD)" >> "$log" 2>&1
+else
+  git worktree add --detach /work/study-code HEAD >> "$log" 2>&1
+fi
 export PYTHONPATH=/work/study-code/src
 
 lane() {  # lane ROOT OTHER_ROOT WHAT...: the sweeps WHAT, one after another, one worker
