@@ -13,39 +13,13 @@ from __future__ import annotations
 
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
 
+from eabc.training.provenance import cpu_model, vector_isa  # noqa: F401 (used by the benchmarks)
+
 SQUARE_SIZES = (1024, 2048, 4096)
-
-
-def cpu_model() -> str:
-    """The CPU's model name, family and model (from /proc/cpuinfo on Linux)."""
-    fields = {}
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                key, _, value = line.partition(":")
-                fields.setdefault(key.strip(), value.strip())
-    except OSError:
-        return platform.processor() or platform.machine()
-    name = fields.get("model name", platform.machine())
-    family, model = fields.get("cpu family"), fields.get("model")
-    return f"{name} (family {family}, model {model})" if family else name
-
-
-def vector_isa() -> str:
-    """The widest x86 vector extension the CPU reports: AVX-512, AVX2 or older."""
-    try:
-        with open("/proc/cpuinfo") as f:
-            flags = next((line.split() for line in f if line.startswith("flags")), [])
-    except OSError:
-        return "unknown"
-    if "avx512f" in flags:
-        return "AVX-512" + (" (+BF16)" if "avx512_bf16" in flags else "")
-    return "AVX2" if "avx2" in flags else ("AVX" if "avx" in flags else "SSE")
 
 
 def host_line() -> str:

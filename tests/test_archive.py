@@ -131,3 +131,41 @@ def test_finished_leaves_out_the_runs_still_training(tmp_path, capsys):
     assert "0 partial" in (out / "report.md").read_text()
     main(["report", str(tmp_path / "none"), "--include", str(archive), "--out", str(out)])
     assert still in set(pd.read_csv(out / "runs.csv")["run_id"])  # without it, kept
+
+
+def test_a_run_trained_twice_is_checked_copy_against_copy(tmp_path, capsys):
+    runs, evaluations = make_results()
+    one, two, three = runs["run_id"].iloc[:3]
+    archive = _archive(tmp_path, runs, evaluations)  # every run once, as its root had them
+    # Another root trained runs one and two again (other run directories, other wall times): one
+    # to the same bits, two with one evaluation off; three is the archived copy read back.
+    again = runs[runs["run_id"].isin([one, two])].assign(
+        run_dir=lambda f: "elsewhere/" + f["run_id"], wall_time_s=lambda f: f["wall_time_s"] + 7
+    )
+    again_evals = evaluations[evaluations["run_id"].isin([one, two])].copy()
+    off = again_evals.index[again_evals["run_id"] == two][3]
+    again_evals.loc[off, "score"] += 0.25
+    found = results.repeats(
+        (again, again_evals), results.read_archive(archive), live_source="elsewhere"
+    ).set_index("run_id")
+    assert list(found.index) == [one, two]  # not three, nor any run read from one place only
+    assert bool(found.loc[one, "identical"]) and found.loc[one, "max_score_difference"] == 0
+    assert not bool(found.loc[two, "identical"])
+    assert found.loc[two, "max_score_difference"] == pytest.approx(0.25)
+    assert found.loc[one, "sources"] == f"elsewhere; {archive}"
+
+    # The command says so, keeps the record, and the next report (read back) keeps it too.
+    root = tmp_path / "root"
+    (root / "runs").mkdir(parents=True)
+    out = tmp_path / "out"
+    report.write_report(again, again_evals, tmp_path / "again")
+    main(
+        ["report", str(root), "--include", str(tmp_path / "again"), str(archive), "--out", str(out)]
+    )
+    assert f"warning: {two} was trained in" in capsys.readouterr().err
+    text = (out / "report.md").read_text()
+    assert "Runs trained more than once, to the same step (2" in text and "1 of 2 agree" in text
+    later = tmp_path / "later"
+    main(["report", str(root), "--include", str(out), "--out", str(later)])
+    kept = pd.read_csv(later / "repeats.csv")
+    assert list(kept["run_id"]) == [one, two] and list(kept["identical"]) == [True, False]

@@ -13,7 +13,7 @@ import pytest
 from eabc import load_policy
 from eabc.agents import eabc, get_algorithm
 from eabc.experiments import results
-from eabc.training import checkpoint, chunks, health, trainer
+from eabc.training import checkpoint, chunks, health, provenance, trainer
 from eabc.training.trainer import TrainConfig
 
 SMALL = dict(
@@ -91,6 +91,10 @@ def test_killed_and_resumed_run_ends_exactly_like_an_uninterrupted_one(
         if line
     ]
     assert steps == list(range(100, 601, 100)), "log rows after the checkpoint must not repeat"
+    # Each start of training left its segment: from 0 (killed at 500), then from the checkpoint.
+    segments = provenance.read(tmp_path / "killed")
+    assert [s["from_step"] for s in segments] == [0, 400]
+    assert all(s["cpu"] and s["code"] and s["libraries"]["jax"] for s in segments)
 
 
 def test_checkpoint_is_msgpack_and_policy_api_matches_training(tmp_path, pendulum_dataset):

@@ -293,9 +293,21 @@ def run_report(cmd: Report) -> None:
     for why in broken["config"]:
         print(f"leaving out a broken run: {why}", file=sys.stderr)
     runs = runs[runs["status"] != "broken"]
+    repeats = results.combined_repeats()  # none without --include: one root holds a run once
     if cmd.include:
         archives = [results.read_archive(d) for d in cmd.include]
-        runs, evaluations = results.merge((runs, evaluations), *archives, live_source=str(cmd.root))
+        live = (runs, evaluations)
+        repeats = results.combined_repeats(
+            results.repeats(live, *archives, live_source=str(cmd.root)),
+            *(results.read_repeats(d) for d in cmd.include),
+        )
+        runs, evaluations = results.merge(live, *archives, live_source=str(cmd.root))
+    for row in repeats[~repeats["identical"].astype(bool)].itertuples():
+        print(
+            f"warning: {row.run_id} was trained in {row.sources} and the copies disagree (largest "
+            f"score difference {row.max_score_difference:.3g}); the report keeps the first",
+            file=sys.stderr,
+        )
     if cmd.finished:
         partial = runs["status"] == "partial"
         if partial.any():
@@ -312,5 +324,6 @@ def run_report(cmd: Report) -> None:
             )
     out = Path(cmd.out) if cmd.out else Path(cmd.root) / "report"
     fix = cmd.fix or report.RECOMMENDED
-    for name, path in report.write_report(runs, evaluations, out, cmd.baseline, fix).items():
+    written = report.write_report(runs, evaluations, out, cmd.baseline, fix, repeats=repeats)
+    for name, path in written.items():
         print(f"{name}: {path}")

@@ -98,6 +98,7 @@ def write_report(
     out_dir: str | Path,
     baseline: str | None = None,
     fix: str = RECOMMENDED,
+    repeats: pd.DataFrame | None = None,
 ) -> dict[str, Path]:
     """Every table and figure into ``out_dir``, and ``report.md`` that shows them all.
 
@@ -108,7 +109,8 @@ def write_report(
     TD3+BC when the sweep ran it), dataset by dataset; ``failures.md`` when published EABC
     (label ``eabc``) and ``fix`` both ran: the one beside the other, where the published rule
     fails and the ensemble's spread at the policy's actions as it did. Returns the paths by file
-    name.
+    name. ``repeats`` (:func:`eabc.experiments.results.repeats`): runs trained more than once,
+    kept as ``repeats.csv`` and shown with whether their copies agree.
     """
     from eabc.experiments import figures  # noqa: PLC0415 (figures imports this module)
 
@@ -188,6 +190,19 @@ def write_report(
             + "; a run in several places counts once, from the copy that trained the most "
             "steps.\n"
         )
+    if repeats is not None and not repeats.empty:
+        write("repeats.csv", repeats.to_csv(index=False))
+        sections.append(repeats_to_markdown(repeats))
+    trained_on = runs["machine"].dropna().astype(str) if "machine" in runs else pd.Series([])
+    trained_on = trained_on[trained_on != ""]
+    if len(trained_on):
+        counts = trained_on.value_counts(sort=False)
+        sections.append(
+            "Trained on (from the runs' `provenance.json`; "
+            f"{len(runs) - len(trained_on)} runs predate that record): "
+            + ", ".join(f"{n} on {m}" for m, n in counts.items())
+            + "; the code of each run is in runs.csv (`code`).\n"
+        )
     diverged = _diverged_runs(runs)
     if diverged:
         sections.append(
@@ -247,6 +262,27 @@ td b { color: #0b4f9c; }
 figure { margin: 1.2rem 0; } figure img { max-width: 100%; border: 1px solid #eee; }
 figcaption { color: #555; font-size: .9rem; }
 """
+
+
+def repeats_to_markdown(repeats: pd.DataFrame) -> str:
+    """The runs trained more than once, and whether their copies agree to the last bit."""
+    same = int(repeats["identical"].astype(bool).sum())
+    lines = [
+        f"Runs trained more than once, to the same step ({len(repeats)}; the report counts each "
+        f"once): {same} of {len(repeats)} agree in every evaluation to the last bit"
+        + ("." if same == len(repeats) else "; the others mix two computations (a host or code "
+           "that changes the numerics): compare their machines and code in runs.csv.")
+        + " [repeats.csv](repeats.csv).\n",
+        "| Run | Steps | Trained in | Evaluations | Largest score difference | Identical |",
+        "|---|---:|---|---:|---:|:---:|",
+    ]  # fmt: skip
+    for row in repeats.itertuples():
+        difference = "" if pd.isna(row.max_score_difference) else f"{row.max_score_difference:.3g}"
+        lines.append(
+            f"| {row.run_id} | {int(row.steps):,} | {row.sources} | {int(row.evaluations)} | "
+            f"{difference} | {'yes' if row.identical else '**no**'} |"
+        )
+    return "\n".join(lines) + "\n"
 
 
 def html_page(title: str, body: str) -> str:

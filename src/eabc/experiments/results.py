@@ -14,8 +14,9 @@
   ``diverged_step`` (where losses or Q became NaN/inf and training stopped), ``q_mean_max`` (the
   largest logged mean Q), the last log row's ``q_mean, q_ensemble_std, policy_q_std, bc_fraction,
   auto_p`` (as ``*_last``), the last in-range row's ``q_mean, q_ensemble_std, policy_q_std``
-  before the first out-of-range one (as ``*_onset``; empty for a run that stayed in range) and
-  ``config`` (JSON);
+  before the first out-of-range one (as ``*_onset``; empty for a run that stayed in range),
+  ``machine`` and ``code`` (the CPUs and code versions that trained it, from its
+  ``provenance.json``; empty for runs from before that record) and ``config`` (JSON);
 - ``evaluations``: ``run_id, step, score, score_std, return_mean, return_std``.
 
 The run directories are the source of truth (``config.json``, ``log.csv``, ``summary.json``); the
@@ -36,6 +37,7 @@ import pandas as pd
 
 from eabc.agents import ALGORITHMS
 from eabc.data import tasks
+from eabc.training import provenance
 from eabc.training.checkpoint import CONFIG, file_mode
 from eabc.training.logger import LOG
 from eabc.training.trainer import FINAL_EVALUATIONS, SUMMARY
@@ -121,6 +123,7 @@ def _read_run(run_dir: Path, run_id: str, config: dict) -> tuple[dict, list[dict
     wall = _num(last_row.get("wall_time")) if last_row else math.nan
     last = evaluations[-FINAL_EVALUATIONS:]
     spec = _read_json(run_dir / "sweep.json")  # written by eabc.experiments.sweep
+    segments = provenance.read(run_dir)  # [] for runs trained before the record
     row = {
         "run_id": run_id,
         "run_dir": str(run_dir),
@@ -143,6 +146,8 @@ def _read_run(run_dir: Path, run_id: str, config: dict) -> tuple[dict, list[dict
         "q_mean_max": q_max,
         **{f"{k}_last": _num(last_row.get(k)) for k in DIAGNOSTICS},
         **{f"{k}_onset": _num(onset.get(k)) for k in ONSET},
+        "machine": provenance.machine_text(segments) if segments else "",
+        "code": provenance.code_text(segments) if segments else "",
         "config": json.dumps(config),
     }
     return row, [{"run_id": run_id, **e} for e in evaluations]
@@ -208,7 +213,8 @@ _RUN_COLUMNS = [
     "run_id", "run_dir", "dataset", "env", "kind", "algo", "seed", "variant", *SETTINGS,
     "status", "steps", "steps_target", "wall_time_s", "steps_per_s", "final_score",
     "final_return", "q_out_of_range_step", "diverged_step", "q_mean_max",
-    *(f"{k}_last" for k in DIAGNOSTICS), *(f"{k}_onset" for k in ONSET), "config",
+    *(f"{k}_last" for k in DIAGNOSTICS), *(f"{k}_onset" for k in ONSET), "machine", "code",
+    "config",
 ]  # fmt: skip
 _EVAL_COLUMNS = ["run_id", "step", "score", "score_std", "return_mean", "return_std"]
 
@@ -281,12 +287,7 @@ def merge(
     steps wins, the live run on a tie: a run that a new machine has only begun again does not
     hide the finished one of an earlier session, and a live run that has caught up replaces its
     archived copy. A run's evaluations always come from the same source as its row."""
-    live_runs = live[0].assign(source=live_source, archived=False)  # archives carry their own
-    sources = [(i, r, e) for i, (r, e) in enumerate(((live_runs, live[1]), *archives))]
-    # An empty frame (a new machine's root) would make every column of the union an object.
-    sources = [x for x in sources if not x[1].empty] or sources[:1]
-    rows = pd.concat([r.assign(_rank=i) for i, r, _ in sources], ignore_index=True)
-    rows["_steps"] = pd.to_numeric(rows["steps"], errors="coerce").fillna(-1)
+    sources, rows = _pool(live, archives, live_source)
     rows = rows.sort_values(["_steps", "_rank"], ascending=[False, True], kind="stable")
     chosen = rows.drop_duplicates("run_id", keep="first").sort_values("run_id", kind="stable")
     evals = pd.concat(
@@ -295,6 +296,90 @@ def merge(
     ).infer_objects()
     runs = chosen.drop(columns=["_rank", "_steps"]).reset_index(drop=True)
     return runs, evals.sort_values(["run_id", "step"], kind="stable").reset_index(drop=True)
+
+
+def _pool(live, archives, live_source: str):
+    """Every source's runs in one frame, ranked (``_rank``: the live root first) and with their
+    steps as numbers (``_steps``), beside the list of ``(rank, runs, evaluations)``."""
+    live_runs = live[0].assign(source=live_source, archived=False)  # archives carry their own
+    sources = [(i, r, e) for i, (r, e) in enumerate(((live_runs, live[1]), *archives))]
+    # An empty frame (a new machine's root) would make every column of the union an object.
+    sources = [x for x in sources if not x[1].empty] or sources[:1]
+    rows = pd.concat([r.assign(_rank=i) for i, r, _ in sources], ignore_index=True)
+    rows["_steps"] = pd.to_numeric(rows["steps"], errors="coerce").fillna(-1)
+    return sources, rows
+
+
+REPEAT_COLUMNS = ["run_id", "steps", "sources", "machines", "evaluations", "max_score_difference",
+                  "identical"]  # fmt: skip
+
+
+def repeats(
+    live: tuple[pd.DataFrame, pd.DataFrame],
+    *archives: tuple[pd.DataFrame, pd.DataFrame],
+    live_source: str = "",
+) -> pd.DataFrame:
+    """Runs trained more than once to the same step, in different places, and whether the copies
+    agree: one row per run with the sources, the machines (where recorded), the evaluations
+    compared, the largest score difference between copies and ``identical`` (every evaluation's
+    score and return equal to the last bit, at the same steps).
+
+    The same run read twice (a root's run directory and the report that archived it) is one
+    copy, not two: copies are told apart by their run directory or their training time. Training
+    is deterministic for a seed, so copies made on other machines or by other code that changes
+    no numerics must agree; one that does not says the merged numbers mix two computations."""
+    sources, rows = _pool(live, archives, live_source)
+    evals = {i: e for i, _, e in sources}
+    found = []
+    for run_id, group in rows.groupby("run_id", sort=True):
+        group = group[group["_steps"] == group["_steps"].max()]
+        wall = pd.to_numeric(group["wall_time_s"], errors="coerce").round(6)
+        copies = group.assign(_wall=wall).drop_duplicates(["run_dir", "_wall"])
+        if len(copies) < 2 or copies["_steps"].iloc[0] <= 0:
+            continue
+        series = []
+        for rank in copies["_rank"]:
+            e = evals[rank]
+            series.append(e[e["run_id"] == run_id].set_index("step")[["score", "return_mean"]])
+        first = series[0]
+        same_steps = all(list(other.index) == list(first.index) for other in series[1:])
+        differences = [
+            (other["score"] - first["score"]).abs().max() for other in series[1:] if same_steps
+        ]
+        identical = same_steps and all(other.equals(first) for other in series[1:])
+        machines = [m for m in copies["machine"].fillna("").astype(str) if m]
+        found.append({
+            "run_id": run_id,
+            "steps": int(copies["_steps"].iloc[0]),
+            "sources": "; ".join(str(x) for x in copies["source"]),
+            "machines": "; ".join(dict.fromkeys(machines)),
+            "evaluations": len(first),
+            "max_score_difference": float(max(differences, default=math.nan)),
+            "identical": bool(identical),
+        })  # fmt: skip
+    return pd.DataFrame(found, columns=REPEAT_COLUMNS)
+
+
+REPEATS = "repeats.csv"
+"""Where ``eabc report`` keeps the runs it found trained twice, so later reports keep them."""
+
+
+def read_repeats(path: str | Path) -> pd.DataFrame:
+    """The repeats an earlier report recorded (``repeats.csv``); none for a sweep root."""
+    file = Path(path) / REPEATS
+    if not file.is_file():
+        return pd.DataFrame(columns=REPEAT_COLUMNS)
+    found = pd.read_csv(file, keep_default_na=False, na_values=[""])
+    return found.reindex(columns=REPEAT_COLUMNS)
+
+
+def combined_repeats(*frames: pd.DataFrame) -> pd.DataFrame:
+    """Repeats from several places, each run once (the first frame's row first)."""
+    frames = [f for f in frames if not f.empty]
+    if not frames:
+        return pd.DataFrame(columns=REPEAT_COLUMNS)
+    both = pd.concat(frames, ignore_index=True).drop_duplicates("run_id", keep="first")
+    return both.sort_values("run_id", kind="stable").reset_index(drop=True)
 
 
 def query(runs: pd.DataFrame, filters: list[str]) -> pd.DataFrame:

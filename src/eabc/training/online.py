@@ -35,7 +35,7 @@ from eabc.agents import sac
 from eabc.agents.common import Batch
 from eabc.data import tasks
 from eabc.evaluation import Evaluator, make_env
-from eabc.training import checkpoint
+from eabc.training import checkpoint, provenance
 from eabc.training.checkpoint import CONFIG, read_config
 from eabc.training.logger import RunLogger
 
@@ -220,6 +220,7 @@ def train_sac(run: OnlineRun, progress: bool = True) -> dict[str, Any]:
     rng = np.random.default_rng()
     rng.bit_generator.state = json.loads(run.state["rng"])
     step = int(run.state["step"])
+    provenance.record(run_dir, step)
     low, high = env.action_space.low, env.action_space.high
     sampler = networks.numpy_gaussian_sampler(
         jax.device_get(run.state["agent"].actor), run.max_action

@@ -21,7 +21,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from eabc.evaluation import Policy
-from eabc.training import checkpoint
+from eabc.training import checkpoint, provenance
 from eabc.training.chunks import device_data, summarize_metrics, train_chunk, train_chunk_seeds
 from eabc.training.health import (
     divergence_warning,
@@ -69,6 +69,8 @@ def train_seeds(runs: list[Run], progress: bool = True) -> list[dict[str, Any]]:
     Each run's writer lock is released when this returns or fails.
     """
     try:
+        for run in runs:  # who trains it from here, where, with what code (provenance.json)
+            provenance.record(run.run_dir, run.step)
         return _train_seeds(runs, progress)
     finally:
         for run in runs:
