@@ -165,6 +165,7 @@ def test_a_run_trained_twice_is_checked_copy_against_copy(tmp_path, capsys):
     assert f"warning: {two} was trained in" in capsys.readouterr().err
     text = (out / "report.md").read_text()
     assert "Runs trained more than once, to the same step (2" in text and "1 of 2 agree" in text
+    assert "ran code with uncommitted changes" not in text
     later = tmp_path / "later"
     main(["report", str(root), "--include", str(out), "--out", str(later)])
     kept = pd.read_csv(later / "repeats.csv")

@@ -5,7 +5,9 @@ from __future__ import annotations
 import json
 import subprocess
 
-from eabc.experiments import results
+from test_report import make_results
+
+from eabc.experiments import report, results
 from eabc.training import provenance
 
 
@@ -63,3 +65,24 @@ def test_the_results_store_names_each_runs_machines_and_code(tmp_path):
     (run / provenance.PROVENANCE).unlink()
     runs, _ = results.collect(tmp_path / "root", write=False)
     assert runs.loc[0, "machine"] == "" and runs.loc[0, "code"] == ""
+
+
+def test_the_report_counts_runs_per_machine_and_flags_uncommitted_code(tmp_path):
+    runs, evaluations = make_results()
+    runs["machine"], runs["code"] = "", ""  # most predate the record
+    runs.loc[:1, "machine"] = "Zen 5, AVX-512"
+    runs.loc[2, "machine"] = "Xeon, AVX2"
+    runs.loc[:2, "code"] = "0.1.0 (git abc)"
+    runs.loc[1, "code"] = "0.1.0 (git abc, uncommitted changes)"
+    report.write_report(runs, evaluations, tmp_path)
+    text = (tmp_path / "report.md").read_text()
+    assert (
+        f"{len(runs) - 3} runs predate that record): 2 on Zen 5, AVX-512, 1 on Xeon, AVX2" in text
+    )
+    assert (
+        f"**1 run(s) ran code with uncommitted changes**, which no commit reproduces: `{runs.loc[1, 'run_id']}`"
+        in text
+    )
+    runs.loc[1, "code"] = "0.1.0 (git abc)"
+    report.write_report(runs, evaluations, tmp_path)
+    assert "uncommitted" not in (tmp_path / "report.md").read_text()

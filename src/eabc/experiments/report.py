@@ -203,6 +203,13 @@ def write_report(
             + ", ".join(f"{n} on {m}" for m, n in counts.items())
             + "; the code of each run is in runs.csv (`code`).\n"
         )
+        code = runs["code"].fillna("").astype(str)
+        uncommitted = runs.loc[code.str.contains("uncommitted changes", regex=False), "run_id"]
+        if len(uncommitted):
+            sections.append(
+                f"**{len(uncommitted)} run(s) ran code with uncommitted changes**, which no commit "
+                "reproduces: " + ", ".join(f"`{r}`" for r in uncommitted) + ".\n"
+            )
     diverged = _diverged_runs(runs)
     if diverged:
         sections.append(
