@@ -17,16 +17,15 @@ import subprocess
 import sys
 import time
 
-from eabc.training.provenance import cpu_model, vector_isa  # noqa: F401 (used by the benchmarks)
+from eabc.training.provenance import cores, cpu_model, vector_isa  # noqa: F401 (benchmarks use them)
 
 SQUARE_SIZES = (1024, 2048, 4096)
 
 
 def host_line() -> str:
     """One line naming the host, printed with every benchmark table."""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     return (
-        f"host: {cpu_model()}, {vector_isa()}, {cores} cores; "
+        f"host: {cpu_model()}, {vector_isa()}, {cores()} cores; "
         f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}"
     )
 

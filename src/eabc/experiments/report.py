@@ -203,7 +203,7 @@ def write_report(
             + ", ".join(f"{n} on {m}" for m, n in counts.items())
             + "; the code of each run is in runs.csv (`code`).\n"
         )
-        code = runs["code"].fillna("").astype(str)
+        code = runs.get("code", pd.Series("", index=runs.index)).fillna("").astype(str)
         uncommitted = runs.loc[code.str.contains("uncommitted changes", regex=False), "run_id"]
         if len(uncommitted):
             sections.append(

@@ -123,7 +123,7 @@ def _read_run(run_dir: Path, run_id: str, config: dict) -> tuple[dict, list[dict
     wall = _num(last_row.get("wall_time")) if last_row else math.nan
     last = evaluations[-FINAL_EVALUATIONS:]
     spec = _read_json(run_dir / "sweep.json")  # written by eabc.experiments.sweep
-    segments = provenance.read(run_dir)  # [] for runs trained before the record
+    segments = provenance.read(run_dir)
     row = {
         "run_id": run_id,
         "run_dir": str(run_dir),
@@ -146,8 +146,8 @@ def _read_run(run_dir: Path, run_id: str, config: dict) -> tuple[dict, list[dict
         "q_mean_max": q_max,
         **{f"{k}_last": _num(last_row.get(k)) for k in DIAGNOSTICS},
         **{f"{k}_onset": _num(onset.get(k)) for k in ONSET},
-        "machine": provenance.machine_text(segments) if segments else "",
-        "code": provenance.code_text(segments) if segments else "",
+        "machine": provenance.machine_text(segments),  # "" for runs trained before the record
+        "code": provenance.code_text(segments),
         "config": json.dumps(config),
     }
     return row, [{"run_id": run_id, **e} for e in evaluations]

@@ -12,6 +12,7 @@ disagree can be told apart by what made them.
 from __future__ import annotations
 
 import datetime
+import functools
 import json
 import os
 import platform
@@ -90,26 +91,35 @@ def _library_versions() -> dict[str, str]:
     return versions
 
 
-def segment(step: int) -> dict[str, Any]:
-    """The record of training that starts now at ``step`` on this machine."""
+def cores() -> int:
+    """The cores this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+
+
+@functools.cache
+def _this_process() -> dict[str, Any]:
+    """What a segment records that does not change while a process runs (its code was read at
+    start-up): looked up once, not once per run of a sweep worker or seed of a vmapped group."""
     import jax  # noqa: PLC0415 (the record is made once per start; keeps the import cheap)
 
     device = jax.devices()[0]
     kind = device.device_kind if device.device_kind != device.platform else ""
     return {
-        "from_step": int(step),
-        "started": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "host": socket.gethostname(),
         "cpu": cpu_model(),
         "isa": vector_isa(),
-        "cores": len(os.sched_getaffinity(0))
-        if hasattr(os, "sched_getaffinity")
-        else os.cpu_count(),
+        "cores": cores(),
         "device": f"{device.platform} {kind}".strip(),
         "code": code_version(),
         "python": platform.python_version(),
         "libraries": _library_versions(),
     }
+
+
+def segment(step: int) -> dict[str, Any]:
+    """The record of training that starts now at ``step`` on this machine."""
+    started = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+    return {"from_step": int(step), "started": started, **_this_process()}
 
 
 def read(run_dir: Path) -> list[dict[str, Any]]:
