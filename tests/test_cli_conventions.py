@@ -41,7 +41,8 @@ def test_an_interval_mismatch_names_the_flags(capsys):
     with pytest.raises(SystemExit) as error:
         main(["train", "--eval-interval", "150", "--log-interval", "100"])
     assert str(error.value.code) == (
-        "error: --eval-interval must be a multiple of --log-interval=100"
+        "error: --eval-interval must be a multiple of --log-interval=100: "
+        "e.g. --eval-interval 200, or a --log-interval that divides 150"
     )
     assert "tyro" not in capsys.readouterr().err
 

@@ -50,7 +50,7 @@ from eabc.training.trainer import TrainConfig
 
 __all__ = [
     "SWEEP_PRESETS", "DataExport", "DataInfo", "DataList", "DataMake", "Evaluate", "ExportPolicy",
-    "Report", "Results", "Sac", "Sweep", "Train", "ZooBuild", "ZooPack", "main", "parse_settings",
+    "Report", "Results", "Sac", "Sweep", "Train", "ZooBuild", "ZooPack", "main", "parse", "parse_settings",
     "sac_agent_config", "sweep_spec",
 ]  # fmt: skip
 
@@ -81,47 +81,61 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(1)
 
 
+COMMANDS: dict[str, type] = {
+    "train": Train,
+    "evaluate": Evaluate,
+    "sac": Sac,
+    "sweep": Sweep,
+    "results": Results,
+    "report": Report,
+    "export-policy": ExportPolicy,
+    "data": DataList,
+    "zoo": ZooPack,
+}
+"""The commands of ``eabc``; ``data`` and ``zoo`` have a second level (:data:`GROUPS`)."""
+
+GROUPS: dict[str, tuple[dict[str, type], str]] = {
+    "data": (
+        {"make": DataMake, "list": DataList, "info": DataInfo, "export": DataExport},
+        "Datasets: make the built-in ones, list the cache, describe any dataset, export to Minari.",
+    ),
+    "zoo": (
+        {"build": ZooBuild, "pack": ZooPack},
+        "The behaviour-policy zoo: build an entry from an `eabc sac` run, or pack a run.",
+    ),
+}
+
+
+def parse(argv: list[str]):
+    """The command ``eabc ARGV`` names, parsed and checked as ``main`` does before running it
+    (a bad flag exits as argparse does; a bad value raises ``ValueError`` naming the flag)."""
+    commands = COMMANDS
+    prog = "eabc"
+    description = "EABC: ensemble-based offline RL with adaptive behaviour cloning."
+    if argv[:1] and argv[0] in GROUPS:  # eabc data {make,list,...}, eabc zoo {build,pack}
+        commands, description = GROUPS[argv[0]]
+        prog = f"eabc {argv[0]}"
+        argv = argv[1:]
+    cmd = tyro.extras.subcommand_cli_from_dict(
+        commands,
+        args=argv,
+        prog=prog,  # not the interpreter's path to the entry point
+        description=description,
+        config=(tyro.conf.DisallowNone,),  # --env STR, not --env {None}|STR
+    )
+    if isinstance(cmd, Train | Sac):  # checked here, so that errors name the flags
+        config_class = TrainConfig if isinstance(cmd, Train) else SACTrainConfig
+        cmd = dataclasses.replace(cmd, config=_checked(cmd.config, config_class))
+    return cmd
+
+
 def _main(argv: list[str] | None) -> None:
     argv = sys.argv[1:] if argv is None else list(argv)
-    commands: dict[str, type] = {
-        "train": Train,
-        "evaluate": Evaluate,
-        "sac": Sac,
-        "sweep": Sweep,
-        "results": Results,
-        "report": Report,
-        "export-policy": ExportPolicy,
-        "data": DataList,
-        "zoo": ZooPack,
-    }
-    description = "EABC: ensemble-based offline RL with adaptive behaviour cloning."
     if argv[:1] in (["--version"], ["-V"]):
         print(f"eabc {__version__}")
         return
-    prog = "eabc"
-    if argv[:1] == ["data"]:  # a second level: eabc data {make,list,info}
-        commands = {"make": DataMake, "list": DataList, "info": DataInfo, "export": DataExport}
-        argv = argv[1:]
-        prog = "eabc data"
-        description = "Datasets: make the built-in ones, list the cache, describe any dataset, export to Minari."
-    elif argv[:1] == ["zoo"]:  # eabc zoo {build,pack}
-        commands = {"build": ZooBuild, "pack": ZooPack}
-        argv = argv[1:]
-        prog = "eabc zoo"
-        description = (
-            "The behaviour-policy zoo: build an entry from an `eabc sac` run, or pack a run."
-        )
     try:
-        cmd = tyro.extras.subcommand_cli_from_dict(
-            commands,
-            args=argv,
-            prog=prog,  # not the interpreter's path to the entry point
-            description=description,
-            config=(tyro.conf.DisallowNone,),  # --env STR, not --env {None}|STR
-        )
-        if isinstance(cmd, Train | Sac):  # checked here, so that errors name the flags
-            config_class = TrainConfig if isinstance(cmd, Train) else SACTrainConfig
-            cmd = dataclasses.replace(cmd, config=_checked(cmd.config, config_class))
+        cmd = parse(argv)
     except ValueError as error:  # invalid settings caught in a dataclass __post_init__
         sys.exit(f"error: {error}")
     options = getattr(cmd, "config", cmd)

@@ -67,8 +67,13 @@ class TrainConfig:
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
         for name in ("eval_interval", "checkpoint_interval"):
-            if getattr(self, name) % self.log_interval:
-                raise ValueError(f"{name} must be a multiple of log_interval={self.log_interval}")
+            value = getattr(self, name)
+            if value % self.log_interval:
+                fits = -(-value // self.log_interval) * self.log_interval
+                raise ValueError(
+                    f"{name} must be a multiple of log_interval={self.log_interval}: "
+                    f"e.g. {name} {fits}, or a log_interval that divides {value}"
+                )
 
 
 def resolve_agent_config(
