@@ -83,6 +83,17 @@ def test_the_report_counts_runs_per_machine_and_flags_uncommitted_code(tmp_path)
         f"**1 run(s) ran code with uncommitted changes**, which no commit reproduces: `{runs.loc[1, 'run_id']}`"
         in text
     )
+    assert (
+        "**These tables merge runs from hosts of different vector extensions (AVX-512, AVX2).**"
+        in text
+    )
     runs.loc[1, "code"] = "0.1.0 (git abc)"
+    runs.loc[2, "machine"] = "Zen 4, AVX-512 (+BF16)"  # BF16 changes no float32 kernel
     report.write_report(runs, evaluations, tmp_path)
-    assert "uncommitted" not in (tmp_path / "report.md").read_text()
+    text = (tmp_path / "report.md").read_text()
+    assert "uncommitted" not in text and "different vector extensions" not in text
+
+
+def test_vector_extensions_are_read_from_every_segment_of_a_run():
+    machines = ["Zen 5, AVX-512", "", "Zen 4, AVX-512 (+BF16) + EPYC, AVX2", "Xeon, AVX2"]
+    assert report.vector_extensions(machines) == ["AVX-512", "AVX2"]

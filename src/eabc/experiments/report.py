@@ -39,6 +39,18 @@ from eabc.experiments.tables import (
 # The report
 
 
+def vector_extensions(machines: pd.Series) -> list[str]:
+    """The vector extensions (AVX-512, AVX2, ...) of the hosts named in runs' ``machine`` texts
+    (``CPU, ISA [+ CPU, ISA]``), each once, in order of appearance."""
+    found = []
+    for text in machines:
+        for host in str(text).split(" + "):
+            isa = host.rpartition(", ")[2].split(" (")[0].strip()  # "AVX-512 (+BF16)": AVX-512
+            if isa and isa not in found:
+                found.append(isa)
+    return found
+
+
 def _diverged_runs(runs: pd.DataFrame) -> list[str]:
     """``run (step N)`` for each run with a ``q_out_of_range_step``."""
     if "q_out_of_range_step" not in runs:
@@ -203,6 +215,15 @@ def write_report(
             + ", ".join(f"{n} on {m}" for m, n in counts.items())
             + "; the code of each run is in runs.csv (`code`).\n"
         )
+        extensions = vector_extensions(trained_on)
+        if len(extensions) > 1:
+            sections.append(
+                f"**These tables merge runs from hosts of different vector extensions "
+                f"({', '.join(extensions)}).** Runs reproduce each other to the bit only on "
+                "hosts of the same extension: the same seed on another one computes in other "
+                "vector kernels and its numbers drift apart within a few thousand steps, as "
+                "another seed's would. Compare like with like through runs.csv's `machine`.\n"
+            )
         code = runs.get("code", pd.Series("", index=runs.index)).fillna("").astype(str)
         uncommitted = runs.loc[code.str.contains("uncommitted changes", regex=False), "run_id"]
         if len(uncommitted):
