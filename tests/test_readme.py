@@ -126,3 +126,12 @@ def test_readme_first_command_runs(tmp_path, monkeypatch):
     [run_dir] = (tmp_path / "runs").iterdir()
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["steps"] == 20 and summary["final_score"] == summary["final_score"]  # not NaN
+
+
+def test_ci_runs_the_readme_test_command():
+    """README's second command (install the test tools, run the suite) is what .ci/run runs."""
+    first_block = (ROOT / "README.md").read_text().split("```bash\n", 1)[1].split("```", 1)[0]
+    install_and_test = first_block.splitlines()[1].split("#", 1)[0].strip()
+    assert install_and_test.endswith("python -m pytest -p no:warnings")
+    ci = [line.strip() for line in (ROOT / ".ci" / "run").read_text().splitlines()]
+    assert install_and_test in ci
