@@ -12,7 +12,7 @@ One call of :func:`update` is one gradient step ``t`` on a mini-batch ``(s, a, r
 
 ``../shared/SPEC.md`` section 1 is the specification this file follows line by line; with every
 setting at its default the rule is exactly that (published EABC). The settings below it are the
-variants of issue 14, each a switch of this one rule:
+variants the study screened (docs/results/screen/README.md), each a switch of this one rule:
 
 - ``critic_layer_norm``: LayerNorm before every hidden ReLU of the critics (SEEM, Yue et al. 2023;
   ReBRAC, Tarasov et al. 2023), which bounds how fast a critic can extrapolate;
@@ -30,11 +30,12 @@ variants of issue 14, each a switch of this one rule:
   the actor's own pessimistic value): the policy is pulled toward the data only where the data does
   better, and left to the critics where they say it does better already. Unlike CRR's actor, this
   one also maximises those critics, so its action nearly always wins (hopper-medium: the BC term
-  was on for 5% of samples after 1K steps, issue 14's screen).
+  was on for 5% of samples after 1K steps, docs/results/screen/earlier-avx2-host/README.md).
 
-Why one file of about 500 lines: issue 14 asks for every variant as a setting of the one rule, so
-the rule, its settings (with the docstrings the CLI and the contract tests read) and the BC-weight
-rules it switches between live together, and a variant is read in one place.
+Why one file of about 500 lines: every variant is a setting of the one rule (so that comparing two
+variants compares that setting alone), so the rule, its settings (with the docstrings the CLI and
+the contract tests read) and the BC-weight rules it switches between live together, and a variant
+is read in one place.
 """
 
 from __future__ import annotations
@@ -191,21 +192,24 @@ PRESETS: dict[str, EABCConfig] = {
     "eabc-quantile": EABCConfig(bc_weight="quantile"),
     # EABC with p adapted during training from offline signals (no per-dataset p).
     "eabc-auto": EABCConfig(bc_weight="auto"),
-    # The candidate for issue 14's recommended variant: automatic p on LayerNorm critics, its
+    # A candidate for the recommended variant: automatic p on LayerNorm critics, its
     # spread-ratio target calibrated over the first 5,000 steps at p = 1 (a target of 1 let p
     # fall to 0.1 on hopper-medium and the score with it; see adapt_confidence_level).
     "eabc-robust": EABCConfig(
         bc_weight="auto", critic_layer_norm=True, auto_calibration_steps=5000, auto_rate=1e-2
     ),
-    # Issue 14's recommended variant so far: full cloning (p = 1, no per-dataset p) on LayerNorm
-    # critics. In the screen (seed 0, 50K steps) it matched or beat TD3+BC on every dataset run so
-    # far, with its critics in range, while every p < 1 we tried lost hopper-medium's score.
+    # The recommended variant: full cloning (p = 1, no per-dataset p) on LayerNorm critics. In the
+    # screen (seed 0, 50K steps; docs/results/screen/README.md) it was within a point of TD3+BC or
+    # above it on every dataset, with its critics in range, while every p < 1 we tried lost
+    # hopper-medium's score; the study sets it against TD3+BC at 3 seeds x 100K steps
+    # (docs/results/study/README.md).
     "eabc-ln": EABCConfig(confidence_level=1.0, critic_layer_norm=True),
     # Automatic p as a trust region: p follows the policy's distance from the data's actions,
     # kept within twice what full cloning leaves over the first 5,000 steps, on LayerNorm critics
     # (every spread-ratio controller on hopper-medium kept the critics sound and still let the
-    # policy drift; the distance sees the drift itself). Screened 2026-12-02: it holds the distance
-    # but lost hopper-medium (22; 35 at 1x) and walker2d-medium (14 at 1x): not recommended.
+    # policy drift; the distance sees the drift itself). In the screen (docs/results/screen/) it
+    # holds the distance but lost hopper-medium (22; 35 at 1x) and walker2d-medium (14 at 1x):
+    # not recommended.
     "eabc-trust": EABCConfig(
         bc_weight="auto",
         critic_layer_norm=True,
@@ -215,9 +219,10 @@ PRESETS: dict[str, EABCConfig] = {
     ),
 }
 PUBLISHED = "eabc"
-"""The published rule (Table 3's p): the side of issue 14's failure tables that fails."""
+"""The published rule (Table 3's p): the side of the study's failure tables that fails."""
 RECOMMENDED = "eabc-ln"
-"""Issue 14's recommended variant, the README's first command: what reports set beside it."""
+"""The recommended variant (docs/results/study/README.md), the README's first command: what
+reports set beside it."""
 
 
 @pytree.dataclass

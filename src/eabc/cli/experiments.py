@@ -29,8 +29,9 @@ class Sweep:
     spec: Annotated[str | None, tyro.conf.Positional, tyro.conf.arg(metavar="SPEC")] = None
     """A YAML file with datasets, algos, seeds, steps, grid and train keys (optional)."""
     preset: Literal[SWEEP_PRESETS] | None = None  # type: ignore[valid-type]
-    """The paper's grids (table1, table6, ablation-*: 15 datasets x 5 seeds) or issue 14's study
-    (study-screen: every EABC variant, 2 seeds x 50K steps; study: 3 seeds x 100K; study-1m)."""
+    """The paper's grids (table1, table6, ablation-*: 15 datasets x 5 seeds) or the study of where
+    published EABC fails (study-screen: every EABC variant, 2 seeds x 50K steps; study: 3 seeds x
+    100K; study-1m: 1M steps), whose results are in docs/results/."""
     root: str = "sweeps/default"
     """The sweep's directory (runs, logs, results)."""
     datasets: tuple[str, ...] = ()

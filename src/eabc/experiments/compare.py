@@ -1,8 +1,9 @@
 """Every algorithm against one baseline, dataset by dataset: is it above, below, or within noise?
 
-Issue 14 asks of a candidate that "at 100K steps it is not below TD3+BC on any of the five datasets
-(beyond seed noise: its 95% bootstrap interval reaches TD3+BC's mean) and above it on average".
-:func:`comparison_table` answers exactly that for every label of a sweep:
+The study (docs/results/study/README.md) asks of a candidate that "at 100K steps it is not below
+TD3+BC on any of the five datasets (beyond seed noise: its 95% bootstrap interval reaches TD3+BC's
+mean) and above it on average". :func:`comparison_table` answers exactly that for every label of
+a sweep:
 
 - per dataset, the label's mean final score over its seeds and the 95% percentile bootstrap
   interval of that mean (seeds resampled with replacement), against the baseline's mean there;
@@ -16,7 +17,7 @@ Issue 14 asks of a candidate that "at 100K steps it is not below TD3+BC on any o
   baseline's mean of per-dataset means on the same datasets.
 
 The baseline's own seed noise is not in the interval: the question is whether the candidate's
-interval reaches the baseline's point estimate, as the issue puts it.
+interval reaches the baseline's point estimate, as the study's criterion puts it.
 """
 
 from __future__ import annotations

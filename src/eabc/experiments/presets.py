@@ -1,4 +1,4 @@
-"""The paper's grids and issue 14's study as sweep presets (``eabc sweep --preset NAME``)."""
+"""The paper's grids and the study's as sweep presets (``eabc sweep --preset NAME``)."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ from typing import Any
 
 from eabc.data import generate
 
-# Issue 14's study: where published EABC fails on our data and what fixes it, at lengths this
-# machine affords (final = mean of the last 10 of the evaluations every 5,000 steps x 10 episodes).
+# The study: where published EABC fails on our data and what fixes it, at lengths a 2-core CPU
+# affords (final = mean of the last 10 of the evaluations every 5,000 steps x 10 episodes).
 STUDY_DATASETS = [
     "hopper-medium",
     "halfcheetah-medium",
@@ -68,7 +68,8 @@ PRESETS: dict[str, dict[str, Any]] = {
         "seeds": [0, 1, 2, 3, 4],
         "grid": {"confidence_level": [0.0, 0.05, 0.25, 0.5, 0.75, 0.95, 1.0]},
     },
-    # Issue 14's screen: every variant against published EABC and TD3+BC, 2 seeds, 50K steps.
+    # The study's screen: every variant against published EABC and TD3+BC, 2 seeds, 50K steps
+    # (what ran of it: docs/results/screen/README.md).
     "study-screen": {
         "datasets": STUDY_DATASETS,
         "variants": SCREEN_VARIANTS,
@@ -76,8 +77,8 @@ PRESETS: dict[str, dict[str, Any]] = {
         "steps": 50_000,
         "train": STUDY_TRAIN,
     },
-    # Issue 14's confirmation: TD3+BC, published EABC, EABC at p = 1 and the recommended variant
-    # (eabc-ln: p = 1 on LayerNorm critics, chosen by the screen of 2026-12-02).
+    # The study's confirmation: TD3+BC, published EABC, EABC at p = 1 and the recommended variant
+    # (eabc-ln: p = 1 on LayerNorm critics, chosen by the screen); docs/results/study/README.md.
     "study": {
         "datasets": STUDY_DATASETS,
         "variants": [

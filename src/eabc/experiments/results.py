@@ -240,7 +240,7 @@ def read_archive(path: str | Path) -> tuple[pd.DataFrame, pd.DataFrame]:
     or of another sweep root's run directories.
 
     A sweep root lives on one machine and is lost with it; the report committed to the repository
-    is what survives. Reading it back lets the next session's report stand on every run measured
+    is what survives. Reading it back lets a later machine's report stand on every run measured
     so far, not only on the run directories still on disk (:func:`merge`). Another root on the
     same machine (a second core's sweep of other runs) is read from its run directories, its
     broken runs left out. Each row's ``source`` says where it came from."""
@@ -285,7 +285,7 @@ def merge(
     A run is known by its ``run_id`` (its path under the sweep root, which names the dataset,
     algorithm, variant and seed). Where several sources hold it, the one that trained the most
     steps wins, the live run on a tie: a run that a new machine has only begun again does not
-    hide the finished one of an earlier session, and a live run that has caught up replaces its
+    hide the finished one of an earlier machine, and a live run that has caught up replaces its
     archived copy. A run's evaluations always come from the same source as its row."""
     sources, rows = _pool(live, archives, live_source)
     rows = rows.sort_values(["_steps", "_rank"], ascending=[False, True], kind="stable")

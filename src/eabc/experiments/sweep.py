@@ -1,7 +1,7 @@
 """Experiment sweeps: each run in its own directory, resumable, local or on Ray.
 
 What a sweep runs comes from a specification (:mod:`eabc.experiments.spec`, the YAML format and
-its expansion; :mod:`eabc.experiments.presets`, the paper's and issue 14's grids). This module
+its expansion; :mod:`eabc.experiments.presets`, the paper's and the study's grids). This module
 runs it: the state of each run on disk, the plan and its cost, and the two backends.
 
 Seeds of one setting form a *group*. A group runs either as one process that trains its seeds

@@ -10,7 +10,8 @@ status, steps, wall_time_s, steps_per_s, final_score``), and ``evaluations``, on
   :func:`to_latex` (mean +- std over seeds of each run's final score; best mean per row in bold).
 - :func:`runtime_table` (Figure 5's numbers) and :func:`aggregate_table` (median, IQM, mean and
   optimality gap with stratified-bootstrap CIs, from :mod:`eabc.experiments.stats`).
-- :func:`stability_table`: where each algorithm's critics fail, dataset by dataset (issue 14).
+- :func:`stability_table`: where each algorithm's critics fail, dataset by dataset (the study's
+  diagnostics).
 - :func:`failure_table`: published EABC beside the fix, dataset by dataset: where it fails and
   what the ensemble's spread at the policy's actions was as the runaway began.
 """
@@ -249,7 +250,7 @@ def aggregate_to_markdown(table: pd.DataFrame, alpha: float = 0.05) -> str:
 
 
 def stability_table(runs: pd.DataFrame) -> pd.DataFrame:
-    """Where each algorithm's critics fail, dataset by dataset (issue 14's diagnostics).
+    """Where each algorithm's critics fail, dataset by dataset (the study's diagnostics).
 
     One row per dataset and label: ``runs``; ``score`` (mean of the final scores) and
     ``score_std``; ``out_of_range`` (runs whose mean Q left the value range the rewards allow);
@@ -321,7 +322,7 @@ def stability_to_markdown(table: pd.DataFrame) -> str:
 
 
 # ----------------------------------------------------------------------------------------------
-# Published EABC beside the fix (issue 14)
+# Published EABC beside the fix (the study's failures.md)
 
 
 def _at_onset(group: pd.DataFrame) -> tuple[pd.Series, pd.Series]:

@@ -5,7 +5,7 @@ it starts from, when, the host and its CPU (model, widest vector extension), the
 package's version with the git commit of the source it ran from (and whether that source had
 uncommitted changes), and the versions of the libraries the numbers depend on. A score can then
 be traced to the code and machine that made it, and a report that merges runs of several hosts,
-sessions or worktrees (``--include``) says which came from where; two copies of one run that
+sweep roots or checkouts (``--include``) says which came from where; two copies of one run that
 disagree can be told apart by what made them.
 """
 
