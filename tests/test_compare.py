@@ -1,4 +1,4 @@
-"""Every algorithm against a baseline, dataset by dataset (issue 14's done-means), by hand."""
+"""Every algorithm against a baseline, dataset by dataset (the study's criterion), by hand."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""d3rlpy trains on our data as it is (issue 17), tested against d3rlpy itself (the `d3rlpy`
+"""d3rlpy trains on our data as it is, tested against d3rlpy itself (the `d3rlpy`
 extra, in `dev`): its transitions are our rows, its file reads back the same, its TD3+BC trains on
 it, and its own Minari reader would have shifted the observations."""
 

@@ -1,4 +1,4 @@
-"""The variants of the EABC rule (issue 14) against hand computations, and the auto-p controller's
+"""The variants of the EABC rule (the study's) against hand computations, and the auto-p controller's
 response to synthetic signals."""
 
 from __future__ import annotations

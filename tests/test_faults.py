@@ -1,6 +1,6 @@
 """Fault injection: kills at any moment, corrupt and foreign files, two writers, bad inputs.
 
-Every test here failed before issue 15's fixes. Runs are tiny (BC or K = 2 EABC, 32-unit
+Every test here failed before the fixes it guards. Runs are tiny (BC or K = 2 EABC, 32-unit
 networks, a few hundred steps) so the file takes well under a minute and a half.
 """
 

@@ -1,4 +1,4 @@
-"""Issue 14's study as sweep presets: named variants, breadth-first order, the protocol's numbers."""
+"""The study's sweep presets: named variants, breadth-first order, the protocol's numbers."""
 
 from __future__ import annotations
 
@@ -74,7 +74,7 @@ def test_bad_variants_are_refused_with_the_settings_named():
         expand(base)
 
 
-def test_study_presets_follow_the_issue_protocol():
+def test_study_presets_follow_the_study_protocol():
     assert set(cli.SWEEP_PRESETS) == set(PRESETS)
     screen = PRESETS["study-screen"]
     runs = expand(screen)
