@@ -1,0 +1,207 @@
+"""AntMaze: D4RL's mazes and coordinates, the BFS waypoint planner, relabelling, the score, and the
+environments (observation layout, goal noise, termination on success, the low-level task)."""
+
+from __future__ import annotations
+
+import itertools
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from eabc.data import antmaze, mazes, tasks
+from eabc.data.mazes import MAZES
+
+R, G = "r", "g"
+# D4RL's d4rl/locomotion/maze_env.py, as lists: the evaluation maps (*_TEST) and the maps its
+# generation script rolled out in (U_MAZE, BIG_MAZE, HARDEST_MAZE).
+D4RL_TEST = {
+    "umaze": [[1, 1, 1, 1, 1], [1, R, 0, 0, 1], [1, 1, 1, 0, 1], [1, G, 0, 0, 1], [1, 1, 1, 1, 1]],
+    "medium": [
+        [1, 1, 1, 1, 1, 1, 1, 1], [1, R, 0, 1, 1, 0, 0, 1], [1, 0, 0, 1, 0, 0, 0, 1],
+        [1, 1, 0, 0, 0, 1, 1, 1], [1, 0, 0, 1, 0, 0, 0, 1], [1, 0, 1, 0, 0, 1, 0, 1],
+        [1, 0, 0, 0, 1, 0, G, 1], [1, 1, 1, 1, 1, 1, 1, 1],
+    ],
+    "large": [
+        [1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1], [1, R, 0, 0, 0, 1, 0, 0, 0, 0, 0, 1],
+        [1, 0, 1, 1, 0, 1, 0, 1, 0, 1, 0, 1], [1, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0, 1],
+        [1, 0, 1, 1, 1, 1, 0, 1, 1, 1, 0, 1], [1, 0, 0, 1, 0, 1, 0, 0, 0, 0, 0, 1],
+        [1, 1, 0, 1, 0, 1, 0, 1, 0, 1, 1, 1], [1, 0, 0, 1, 0, 0, 0, 1, 0, G, 0, 1],
+        [1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1],
+    ],
+}  # fmt: skip
+D4RL_GENERATION_GOALS = {
+    "umaze": [(3, 1)],
+    "medium": [(2, 6), (5, 1), (6, 5)],
+    "large": [(1, 6), (3, 5), (3, 10), (5, 2), (7, 4), (7, 6), (7, 9)],
+}
+# Start and goal cell centres in D4RL's coordinates (x = col * 4 - 4, y = row * 4 - 4 with the
+# reset cell at (1, 1)); D4RL's antmaze-*-v2 target goals lie within [0, 1.5) above these.
+D4RL_START_GOAL = {
+    "umaze": ((0, 0), (0, 8)),
+    "medium": ((0, 0), (20, 20)),
+    "large": ((0, 0), (32, 24)),
+}
+
+
+@pytest.mark.parametrize("name", list(MAZES))
+def test_maps_cells_and_positions_are_d4rls(name):
+    maze, d4rl = MAZES[name], D4RL_TEST[name]
+    assert maze.shape == (len(d4rl), len(d4rl[0]))
+    for (row, col), value in np.ndenumerate(np.array(d4rl, dtype=object)):
+        assert maze.is_free((row, col)) == (value != 1)
+        assert (maze.layout[row][col] in "RG") == (value in (R, G))
+    assert maze.start_cell == (1, 1) and d4rl[1][1] == R
+    assert d4rl[maze.goal_cell[0]][maze.goal_cell[1]] == G
+    np.testing.assert_array_equal(maze.start_xy, D4RL_START_GOAL[name][0])
+    np.testing.assert_array_equal(maze.goal_xy, D4RL_START_GOAL[name][1])
+    assert list(maze.generation_goals) == D4RL_GENERATION_GOALS[name]
+    assert all(maze.is_free(cell) for cell in maze.generation_goals)
+    assert maze.max_episode_steps == (700 if name == "umaze" else 1000)
+    for cell in maze.free_cells:  # xy_to_cell inverts cell_to_xy, anywhere inside the square
+        for offset in ([0, 0], [1.99, -1.99], [-1.99, 1.99]):
+            assert maze.xy_to_cell(maze.cell_to_xy(cell) + offset) == cell
+    assert mazes.maze_of(f"antmaze-{name}-diverse") is maze
+
+
+def test_a_bad_layout_or_name_is_refused():
+    with pytest.raises(ValueError, match="exactly one 'G'"):
+        mazes.Maze("x", ("###", "#R#", "###"), 10, ())
+    with pytest.raises(ValueError, match="names no AntMaze maze"):
+        mazes.maze_of("hopper-medium")
+
+
+@pytest.mark.parametrize("name", list(MAZES))
+def test_the_planner_finds_a_shortest_path_between_any_two_free_cells(name):
+    maze = MAZES[name]
+    for start, target in itertools.product(maze.free_cells, repeat=2):
+        distance = mazes.distances_to(maze, target)
+        cell, steps = start, 0
+        while cell != target:
+            step = mazes.next_cell(maze, cell, target)
+            assert maze.is_free(step) and abs(step[0] - cell[0]) + abs(step[1] - cell[1]) == 1
+            cell, steps = step, steps + 1
+        assert steps == distance[start] < np.inf  # every free cell reaches every other
+    with pytest.raises(ValueError, match="is a wall"):
+        mazes.distances_to(maze, (0, 0))
+
+
+@pytest.mark.parametrize("name", list(MAZES))
+def test_a_point_mass_led_by_waypoints_reaches_every_goal_and_stays_off_the_walls(name):
+    """A point that moves 0.5 m per step toward :func:`mazes.waypoint` (D4RL's noise) gets within
+    0.5 of a noisy goal from anywhere, every position it passes in a free cell."""
+    maze, rng = MAZES[name], np.random.default_rng(0)
+    cells = maze.free_cells
+    pairs = [(maze.start_cell, maze.goal_cell)] + [
+        (cells[i], cells[j]) for i, j in rng.integers(0, len(cells), (60, 2))
+    ]
+    for start, goal_cell in pairs:
+        xy = maze.cell_to_xy(start) + rng.uniform(-1.9, 1.9, 2)
+        goal = maze.cell_to_xy(goal_cell) + rng.uniform(0, 1.5, 2)
+        for _ in range(int(mazes.distances_to(maze, goal_cell)[start] + 2) * 16):
+            if mazes.is_success(xy, goal):
+                break
+            offset = mazes.waypoint(maze, xy, goal, rng) - xy
+            xy = xy + offset * min(1.0, 0.5 / np.linalg.norm(offset))
+            assert maze.is_free(maze.xy_to_cell(xy)), (start, goal_cell, xy)
+        assert mazes.is_success(xy, goal), (start, goal_cell)
+
+
+def test_relabelling_rewards_the_next_position_within_half_a_metre():
+    goal = np.array([0.5, 8.5])  # offsets exact in binary: 0.5 is 0.5
+    next_xy = goal + np.array([[0.25, -0.25], [0.0, 0.5], [-0.5078125, 0.0], [-3.0, 0.0]])
+    rewards, terminals = mazes.relabel(next_xy, goal)
+    np.testing.assert_array_equal(rewards, [1.0, 1.0, 0.0, 0.0])  # 0.5 exactly counts (D4RL <=)
+    assert rewards.dtype == np.float32 and terminals.dtype == bool
+    np.testing.assert_array_equal(terminals, rewards == 1)
+    np.testing.assert_array_equal(mazes.training_rewards(rewards), [0.0, 0.0, -1.0, -1.0])
+
+
+def test_the_score_is_100_times_the_success_rate_as_d4rls_normalisation():
+    returns = [1.0, 0.0, 0.0, 1.0, 1.0]  # an AntMaze episode's return: 1 on success, else 0
+    assert mazes.success_score(returns) == 60.0
+    assert mazes.success_score(np.array(returns, bool)) == 60.0
+    assert np.mean([tasks.normalized_score(r, 0.0, 1.0) for r in returns]) == 60.0
+    with pytest.raises(ValueError, match="no episodes"):
+        mazes.success_score([])
+
+
+@pytest.mark.parametrize("name", list(MAZES))
+def test_maze_env_is_d4rls_evaluation(name):
+    env = gym.make(antmaze.ENV_IDS[name])
+    assert env.spec.max_episode_steps == MAZES[name].max_episode_steps
+    inner, maze = env.unwrapped, MAZES[name]
+    # walls where D4RL's MazeEnv puts them: block (i, j) at (j * 4 - 4, i * 4 - 4, 1), half-size 2
+    blocks = {
+        inner.model.geom(g).name: (inner.model.geom_pos[g], inner.model.geom_size[g])
+        for g in range(inner.model.ngeom)
+        if inner.model.geom(g).name.startswith("block_")
+    }
+    assert len(blocks) == len(maze.wall_cells)
+    for i, j in maze.wall_cells:
+        pos, size = blocks[f"block_{i}_{j}"]
+        np.testing.assert_allclose(pos, [j * 4 - 4, i * 4 - 4, 1.0])
+        np.testing.assert_allclose(size, [2.0, 2.0, 1.0])
+    obs, info = env.reset(seed=0)
+    assert obs.shape == (29,) and env.observation_space.shape == (29,)
+    np.testing.assert_array_equal(obs[:15], inner.data.qpos[:15])
+    np.testing.assert_array_equal(obs[15:], inner.data.qvel[:14])
+    assert np.abs(obs[:2] - maze.start_xy).max() <= 0.1  # D4RL's U(-0.1, 0.1) reset noise
+    goals = [info["goal"]] + [env.reset()[1]["goal"] for _ in range(20)]
+    offsets = np.array(goals) - maze.goal_xy
+    assert (offsets >= 0).all() and (offsets < 1.5).all() and len(np.unique(offsets)) == 42
+    _, reward, terminated, truncated, info = env.step(np.zeros(8))
+    assert (reward, terminated, truncated, info["success"]) == (0.0, False, False, False)
+    inner.data.qpos[:2] = inner.goal + [0.3, 0.0]  # carry the ant to the goal
+    obs, reward, terminated, _, info = env.step(np.zeros(8))
+    assert mazes.is_success(obs[:2], inner.goal)
+    assert (reward, terminated, info["success"]) == (1.0, True, True)
+
+
+def test_maze_env_options_and_collection_mode():
+    env = antmaze.AntMazeEnv("medium", terminate_on_success=False)
+    obs, info = env.reset(seed=1, options={"start_cell": (4, 5), "goal_cell": (2, 6)})
+    start = MAZES["medium"].cell_to_xy((4, 5))
+    assert ((obs[:2] - start) > -0.11).all() and ((obs[:2] - start) < 1.11).all()
+    assert ((info["goal"] - MAZES["medium"].cell_to_xy((2, 6))) >= 0).all()
+    env.data.qpos[:2] = env.goal
+    _, reward, terminated, _, _ = env.step(np.zeros(8))
+    assert reward == 1.0 and not terminated
+    with pytest.raises(ValueError, match="is a wall"):
+        env.reset(options={"goal_cell": (0, 0)})
+
+
+def test_d4rl_ant_physics():
+    env = antmaze.AntDirectionEnv()
+    assert env.dt == pytest.approx(0.1) and env.model.opt.integrator == 1  # RK4
+    np.testing.assert_array_equal(env.model.actuator_ctrlrange, np.tile([-30.0, 30.0], (8, 1)))
+    env.reset(seed=0)
+    env.step(np.full(8, 5.0))  # out-of-range actions are clipped to [-1, 1], i.e. +-30
+    np.testing.assert_array_equal(env.data.ctrl, np.full(8, 30.0))
+
+
+def test_direction_env_rewards_velocity_along_its_direction():
+    env = gym.make(antmaze.DIRECTION_ENV_ID)
+    inner = env.unwrapped
+    assert env.spec.max_episode_steps == 1000
+    obs, info = env.reset(seed=3)
+    assert obs.shape == (29,) and np.linalg.norm(obs[-2:]) == pytest.approx(1.0)
+    np.testing.assert_array_equal(obs[:-2], np.concatenate([inner.data.qpos[2:], inner.data.qvel]))
+    rng, directions = np.random.default_rng(0), [obs[-2:]]
+    for step in range(1, 201):
+        before = inner.data.qpos[:2].copy()
+        obs, reward, terminated, _, info = env.step(rng.uniform(-1, 1, 8))
+        assert reward == pytest.approx((info["xy"] - before) @ info["direction"] / 0.1)
+        assert not terminated
+        if step % 100 == 0:
+            directions.append(obs[-2:])
+    assert not np.allclose(directions[0], directions[1])  # redrawn every 100 steps
+    inner.data.qpos[2] = 1.5  # thrown up: out of D4RL's healthy height range
+    assert env.step(np.zeros(8))[2]
+
+
+def test_lowlevel_observation_points_at_the_waypoint():
+    obs = np.arange(29, dtype=np.float64)
+    low = antmaze.lowlevel_observation(obs, obs[:2] + [3.0, -4.0])
+    np.testing.assert_array_equal(low[:27], obs[2:])
+    np.testing.assert_allclose(low[27:], [0.6, -0.8])
