@@ -103,8 +103,11 @@ def test_study_presets_follow_the_study_protocol():
         ("eabc-ln", ()),
     }
     long = expand(PRESETS["study-1m"])
-    assert {r.dataset for r in long} == {"halfcheetah-medium"}
+    assert {r.dataset for r in long} == {"hopper-medium", "halfcheetah-medium"}
     assert long[0].train_config().steps == 1_000_000
+    # breadth first: every algorithm's seed 0 on both datasets before any seed 1
+    zero = [r for r in long if r.seed == 0]
+    assert {r.seed for r in long[: len(zero)]} == {0} and len(zero) < len(long)
 
 
 def test_stability_table_says_where_the_critics_fail():
