@@ -13,7 +13,7 @@ from handcalc import ACT, OBS, B, member, np_mlp
 from learning import MARGIN, late_gain
 
 from eabc import networks
-from eabc.agents import eabc
+from eabc.agents import bc_weights, eabc
 from eabc.training import trainer
 
 
@@ -119,7 +119,7 @@ def test_actor_uses_beta_in_its_pessimistic_value(batch):
 def test_quantile_rule_matches_hand_computation(batch, level):
     config = tiny(bc_weight="quantile", quantile_level=level, num_critics=5)
     state = eabc.init(jax.random.PRNGKey(3), OBS, ACT, config)
-    got = np.asarray(eabc.quantile_keep(state.critic, batch, config))
+    got = np.asarray(bc_weights.quantile_keep(state.critic, batch, config))
     s, a = (np.asarray(x, np.float64) for x in (batch.observations, batch.actions))
     q = np.stack(
         [np_mlp(member(state.critic, i), np.concatenate([s, a], -1))[:, 0] for i in range(5)]
@@ -136,7 +136,7 @@ def test_quantile_rule_masks_the_actor_step_with_the_pre_update_critics(batch):
     state = eabc.init(jax.random.PRNGKey(3), OBS, ACT, config)
     state = state.replace(step=jnp.ones((), jnp.int32))  # the next step updates the actor
     _, metrics = eabc.update(state, batch, jax.random.PRNGKey(0), config, 1.0)
-    keep = eabc.quantile_keep(state.critic, batch, config)
+    keep = bc_weights.quantile_keep(state.critic, batch, config)
     np.testing.assert_allclose(metrics["bc_fraction"], keep.mean())
 
 
@@ -217,17 +217,17 @@ def _signals(policy_std, data_std, q_mean=10.0, actor_q_mean=10.0):
 
 def test_auto_p_rises_when_the_policy_is_less_certain_than_the_data(batch):
     config = tiny(bc_weight="auto", auto_rate=0.01)
-    rise, m = eabc.adapt_confidence_level(_controller(), batch, _signals(2.0, 1.0), config)
+    rise, m = bc_weights.adapt_confidence_level(_controller(), batch, _signals(2.0, 1.0), config)
     np.testing.assert_allclose(rise["p"], 0.5 + 0.01 * np.log(2.0), rtol=1e-5)
     np.testing.assert_allclose(m["spread_ratio"], 2.0, rtol=1e-5)
-    fall, _ = eabc.adapt_confidence_level(_controller(), batch, _signals(0.5, 1.0), config)
+    fall, _ = bc_weights.adapt_confidence_level(_controller(), batch, _signals(0.5, 1.0), config)
     np.testing.assert_allclose(fall["p"], 0.5 - 0.01 * np.log(2.0), rtol=1e-5)
     # The error is clipped to [-1, 1]: a huge ratio moves p by at most the rate.
-    big, _ = eabc.adapt_confidence_level(_controller(), batch, _signals(1e6, 1.0), config)
+    big, _ = bc_weights.adapt_confidence_level(_controller(), batch, _signals(1e6, 1.0), config)
     np.testing.assert_allclose(big["p"], 0.51, rtol=1e-5)
     # The target ratio shifts the set point.
     shifted = dataclasses.replace(config, auto_spread_ratio=2.0)
-    same, _ = eabc.adapt_confidence_level(_controller(), batch, _signals(2.0, 1.0), shifted)
+    same, _ = bc_weights.adapt_confidence_level(_controller(), batch, _signals(2.0, 1.0), shifted)
     np.testing.assert_allclose(same["p"], 0.5, rtol=1e-6)
 
 
@@ -235,23 +235,23 @@ def test_calibrated_auto_p_holds_p_then_targets_the_cloning_spread_ratio(batch):
     config = tiny(bc_weight="auto", auto_rate=0.01, auto_calibration_steps=4)
     controller = {**_controller(p=1.0), "ratio_sum": jnp.zeros(()), "ratio_count": jnp.zeros(())}
     for step, ratio in zip((2, 4), (0.9, 0.7)):  # actor steps inside the calibration: p held
-        controller, m = eabc.adapt_confidence_level(
+        controller, m = bc_weights.adapt_confidence_level(
             controller, batch, _signals(ratio, 1.0), config, jnp.asarray(step)
         )
         np.testing.assert_allclose(controller["p"], 1.0)
     np.testing.assert_allclose(m["spread_target"], 0.8, rtol=1e-5)  # mean of 0.9 and 0.7
     # After it: a ratio at the calibrated 0.8 holds p; above it p rises, below it p falls.
-    held, _ = eabc.adapt_confidence_level(
+    held, _ = bc_weights.adapt_confidence_level(
         {**controller, "p": jnp.asarray(0.5)}, batch, _signals(0.8, 1.0), config, jnp.asarray(6)
     )
     np.testing.assert_allclose(held["p"], 0.5, rtol=1e-5)
     np.testing.assert_allclose(held["ratio_count"], 2.0)  # the calibration no longer moves
-    fall, m = eabc.adapt_confidence_level(controller, batch, _signals(0.4, 1.0), config, 6)
+    fall, m = bc_weights.adapt_confidence_level(controller, batch, _signals(0.4, 1.0), config, 6)
     np.testing.assert_allclose(fall["p"], 1.0 - 0.01 * np.log(2.0), rtol=1e-5)
     np.testing.assert_allclose(m["spread_target"], 0.8, rtol=1e-5)
     # auto_spread_ratio scales the calibrated target.
     scaled = dataclasses.replace(config, auto_spread_ratio=0.5)
-    same, _ = eabc.adapt_confidence_level(
+    same, _ = bc_weights.adapt_confidence_level(
         {**controller, "p": jnp.asarray(0.5)}, batch, _signals(0.4, 1.0), scaled, 6
     )
     np.testing.assert_allclose(same["p"], 0.5, rtol=1e-5)
@@ -293,21 +293,21 @@ def test_distance_auto_p_calibrates_on_the_second_half_then_keeps_a_trust_region
     }
     # Steps 2 and 4 (first half: the fit is still settling) do not count; 6 and 8 do.
     for step, distance in zip((2, 4, 6, 8), (5.0, 3.0, 0.12, 0.08)):
-        controller, m = eabc.adapt_confidence_level(
+        controller, m = bc_weights.adapt_confidence_level(
             controller, batch, _distance_signals(distance), config, jnp.asarray(step)
         )
         np.testing.assert_allclose(controller["p"], 1.0)
     np.testing.assert_allclose(controller["distance_count"], 2.0)
     np.testing.assert_allclose(m["distance_target"], 2.0 * 0.1, rtol=1e-4)
     at = {**controller, "p": jnp.asarray(0.5)}
-    held, _ = eabc.adapt_confidence_level(at, batch, _distance_signals(0.2), config, 10)
+    held, _ = bc_weights.adapt_confidence_level(at, batch, _distance_signals(0.2), config, 10)
     np.testing.assert_allclose(held["p"], 0.5, rtol=1e-4)
     # Inside the region p falls even where the spread ratio is high (the signal is the distance).
-    fall, _ = eabc.adapt_confidence_level(at, batch, _distance_signals(0.1, 5.0), config, 10)
+    fall, _ = bc_weights.adapt_confidence_level(at, batch, _distance_signals(0.1, 5.0), config, 10)
     np.testing.assert_allclose(fall["p"], 0.5 - 0.01 * np.log(2.0), rtol=1e-4)
-    rise, _ = eabc.adapt_confidence_level(at, batch, _distance_signals(0.4, 0.1), config, 10)
+    rise, _ = bc_weights.adapt_confidence_level(at, batch, _distance_signals(0.4, 0.1), config, 10)
     np.testing.assert_allclose(rise["p"], 0.5 + 0.01 * np.log(2.0), rtol=1e-4)
-    far, _ = eabc.adapt_confidence_level(at, batch, _distance_signals(1e3), config, 10)
+    far, _ = bc_weights.adapt_confidence_level(at, batch, _distance_signals(1e3), config, 10)
     np.testing.assert_allclose(far["p"], 0.51, rtol=1e-5)  # the error is clipped at 1
 
 
@@ -331,37 +331,41 @@ def test_auto_p_stays_within_its_bounds(batch):
     config = tiny(bc_weight="auto", auto_rate=0.3, auto_min_p=0.2)
     controller = _controller(p=0.5)
     for _ in range(10):
-        controller, _ = eabc.adapt_confidence_level(controller, batch, _signals(0.01, 1.0), config)
+        controller, _ = bc_weights.adapt_confidence_level(
+            controller, batch, _signals(0.01, 1.0), config
+        )
     np.testing.assert_allclose(controller["p"], 0.2)
     for _ in range(10):
-        controller, _ = eabc.adapt_confidence_level(controller, batch, _signals(100.0, 1.0), config)
+        controller, _ = bc_weights.adapt_confidence_level(
+            controller, batch, _signals(100.0, 1.0), config
+        )
     np.testing.assert_allclose(controller["p"], 1.0)
 
 
 def test_auto_p_jumps_to_full_cloning_when_values_leave_what_rewards_allow(batch):
     config = tiny(bc_weight="auto", auto_rate=0.01, auto_value_margin=0.9)
     # The batch's rewards extend the range seen so far.
-    seen, _ = eabc.adapt_confidence_level(
+    seen, _ = bc_weights.adapt_confidence_level(
         _controller(rewards=(0.0, 0.0)), batch, _signals(1.0, 1.0), config
     )
     np.testing.assert_allclose(seen["reward_max"], float(np.max(batch.rewards)))
     np.testing.assert_allclose(seen["reward_min"], float(np.min(batch.rewards)))
     ceiling = 0.9 * 1.0 / (1 - 0.99)  # reward_max 1 -> V_hi = 100
     batch = dataclasses.replace(batch, rewards=jnp.clip(batch.rewards, -0.5, 0.5))
-    below, m = eabc.adapt_confidence_level(
+    below, m = bc_weights.adapt_confidence_level(
         _controller(p=0.1, rewards=(0.0, 5.0)), batch, _signals(0.5, 1.0, q_mean=80.0), config
     )
     assert float(below["p"]) < 0.1
-    above, m = eabc.adapt_confidence_level(
+    above, m = bc_weights.adapt_confidence_level(
         _controller(p=0.1, rewards=(-1e-3, 1.0)), batch, _signals(0.5, 1.0, q_mean=100.0), config
     )
     np.testing.assert_allclose(m["value_ceiling"], ceiling, rtol=1e-5)
     np.testing.assert_allclose(above["p"], 1.0)
     # At the policy's actions too, and for values that are not finite.
-    policy, _ = eabc.adapt_confidence_level(
+    policy, _ = bc_weights.adapt_confidence_level(
         _controller(p=0.1), batch, _signals(0.5, 1.0, actor_q_mean=91.0), config
     )
-    nan, _ = eabc.adapt_confidence_level(
+    nan, _ = bc_weights.adapt_confidence_level(
         _controller(p=0.1), batch, _signals(0.5, 1.0, q_mean=np.nan), config
     )
     assert float(policy["p"]) == 1.0 and float(nan["p"]) == 1.0

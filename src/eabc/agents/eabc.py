@@ -21,21 +21,14 @@ variants the study screened (docs/results/screen/README.md), each a switch of th
   (MSG, Ghasemipour et al. 2022), so the members stay diverse off the data and the actor's
   ``mean - beta * std`` sees a real spread there;
 - ``bc_weight``: how the per-sample BC weight ``w`` is chosen. ``bernoulli`` is the paper's
-  ``w ~ Bernoulli(p)``. ``quantile`` is the authors' earlier rule (SPEC section 5): ``w = 1`` where
-  the q-quantile of the K values ``Q_k(s, a)`` exceeds ``m + s / sqrt(K)``. ``auto`` adapts p
-  during training (see :func:`adapt_confidence_level`): ``w ~ Bernoulli(p_t)`` with ``p_t`` moved
-  by offline signals only, never by evaluation returns. ``advantage`` has no p at all: ``w = 1``
-  where the ensemble rates the data's action at least as high as the policy's,
-  ``pess(Q(s, a)) >= pess(Q(s, pi(s)))`` (CRR's binary advantage filter, Wang et al. 2020, with
-  the actor's own pessimistic value): the policy is pulled toward the data only where the data does
-  better, and left to the critics where they say it does better already. Unlike CRR's actor, this
-  one also maximises those critics, so its action nearly always wins (hopper-medium: the BC term
-  was on for 5% of samples after 1K steps, docs/results/screen/earlier-avx2-host/README.md).
+  ``w ~ Bernoulli(p)``; ``advantage`` keeps BC where the ensemble rates the data's action at least
+  as high as the policy's (:func:`advantage_keep`); the authors' earlier ``quantile`` rule and the
+  automatic p (``auto``) live in :mod:`eabc.agents.bc_weights`. None of them beat full cloning in
+  the screen (docs/results/screen/README.md).
 
-Why one file of about 500 lines: every variant is a setting of the one rule (so that comparing two
-variants compares that setting alone), so the rule, its settings (with the docstrings the CLI and
-the contract tests read) and the BC-weight rules it switches between live together, and a variant
-is read in one place.
+Every variant is a setting of the one rule, so that comparing two variants compares that setting
+alone; the rule and its settings (with the docstrings the CLI and the contract tests read) live
+here, the longer BC-weight rules it can switch to in :mod:`eabc.agents.bc_weights`.
 """
 
 from __future__ import annotations
@@ -49,6 +42,7 @@ import jax.numpy as jnp
 import optax
 
 from eabc import networks, pytree
+from eabc.agents import bc_weights
 from eabc.agents.common import Batch, apply_gradients
 from eabc.agents.contract import Algorithm
 from eabc.data import tasks
@@ -194,7 +188,7 @@ PRESETS: dict[str, EABCConfig] = {
     "eabc-auto": EABCConfig(bc_weight="auto"),
     # A candidate for the recommended variant: automatic p on LayerNorm critics, its
     # spread-ratio target calibrated over the first 5,000 steps at p = 1 (a target of 1 let p
-    # fall to 0.1 on hopper-medium and the score with it; see adapt_confidence_level).
+    # fall to 0.1 on hopper-medium and the score with it; see bc_weights.adapt_confidence_level).
     "eabc-robust": EABCConfig(
         bc_weight="auto", critic_layer_norm=True, auto_calibration_steps=5000, auto_rate=1e-2
     ),
@@ -253,17 +247,7 @@ def init(key: jax.Array, obs_dim: int, act_dim: int, config: EABCConfig) -> EABC
         layer_norm=config.critic_layer_norm,
     )
     actor_tx, critic_tx = _optimizers(config)
-    controller = {}
-    if config.bc_weight == "auto":
-        controller = {
-            "p": jnp.asarray(config.auto_initial_p, jnp.float32),
-            "reward_min": jnp.asarray(jnp.inf, jnp.float32),
-            "reward_max": jnp.asarray(-jnp.inf, jnp.float32),
-        }
-        if config.auto_calibration_steps:  # the calibration's running sum and count
-            name = "ratio" if config.auto_signal == "spread" else "distance"
-            controller[f"{name}_sum"] = jnp.zeros((), jnp.float32)
-            controller[f"{name}_count"] = jnp.zeros((), jnp.float32)
+    controller = bc_weights.initial_controller(config) if config.bc_weight == "auto" else {}
     return EABCState(
         actor=actor,
         critic=critic,
@@ -358,17 +342,6 @@ def actor_loss(actor, critic, batch: Batch, key, config, max_action, keep=None, 
     return loss, metrics
 
 
-def quantile_keep(critic, batch: Batch, config: EABCConfig) -> jax.Array:
-    """The authors' earlier BC weight (SPEC section 5): ``w = 1`` where the q-quantile of the K
-    online values at the batch's own actions exceeds ``mean + std / sqrt(K)`` (ddof 1)."""
-    if config.quantile_level is None:
-        raise ValueError("bc_weight quantile needs quantile_level q (SPEC section 5's table)")
-    q = jax.lax.stop_gradient(networks.critic_apply(critic, batch.observations, batch.actions))
-    upper = jnp.quantile(q, config.quantile_level, axis=0)  # linear, as torch.quantile
-    k = q.shape[0]
-    return (upper > q.mean(axis=0) + q.std(axis=0, ddof=1) / jnp.sqrt(k)).astype(q.dtype)
-
-
 def advantage_keep(critic, batch: Batch, policy_value, key, config: EABCConfig) -> jax.Array:
     """bc_weight advantage's mask: 1 where the data's action is valued at least as high as the
     policy's, both by the actor's own value (``pess`` of the ensemble, or critic 1 for
@@ -380,74 +353,6 @@ def advantage_keep(critic, batch: Batch, policy_value, key, config: EABCConfig) 
         data_value = q[0]
     better = data_value >= policy_value
     return jax.lax.stop_gradient(better.astype(policy_value.dtype))
-
-
-def adapt_confidence_level(controller, batch: Batch, metrics, config: EABCConfig, step=None):
-    """One step of bc_weight auto's controller for p, after an actor step.
-
-    Signals, all offline (from the batch and the networks, never from evaluation returns):
-
-    - ``auto_signal = spread``: the spread ratio ``x = rho = std_K Q(s, pi(s)) / std_K Q(s, a)``
-      (batch means, online critics): above 1 the policy acts where the ensemble is less sure than
-      at the data's own actions;
-    - ``auto_signal = distance``: the policy's squared distance from the data's actions,
-      ``x = delta = mean (pi(s) - a)^2 / max_action^2`` (before this step's actor update): how far
-      the policy has moved from the behaviour it would clone;
-    - the value bounds ``V_hi = max(0, max r) / (1 - gamma)`` and ``V_lo = min(0, min r) /
-      (1 - gamma)`` over the rewards seen so far: no policy's value can lie outside them.
-
-    Rule: ``p <- clip(p + rate * clip(log(x / target), -1, 1), auto_min_p, 1)``;
-    and ``p <- 1`` at once when the mean value at the data's or the policy's actions passes
-    ``auto_value_margin * V_hi`` or falls below ``V_lo - 0.1 (V_hi - V_lo)``, or is not finite
-    (the critics are extrapolating: clone fully until they come back). So p falls while the
-    signal stays under its target and rises as soon as it passes it.
-
-    Targets. spread: ``auto_spread_ratio``; with ``auto_calibration_steps = N > 0`` it is
-    ``auto_spread_ratio * mean(rho over the actor steps before gradient step N)``, p held at
-    ``auto_initial_p`` meanwhile (the guard still acts). Why: on our hopper-medium rho sits at
-    0.93-0.95 under full cloning, with or without LayerNorm critics, so a target of 1 lowered p
-    steadily to about 0.1, where the critics stayed in range but the score fell from 94 to 18-27.
-    distance (N required): ``auto_distance_ratio * mean(delta over the actor steps in (N/2, N])``,
-    i.e. a trust region around the data's actions whose radius is measured, not chosen: twice (by
-    default) the error that cloning alone leaves on this data, so a dataset of noisy or mixed
-    behaviour (random, replay) gives the policy more room than one of a single steady policy.
-    Why: every spread-ratio run on hopper-medium kept its critics in range and still lost its
-    score as p fell (the ensemble cannot see the policy drifting where its members agree); the
-    distance sees the drift itself. ``step`` is the gradient step just taken (for calibrating).
-    """
-    low = jnp.minimum(controller["reward_min"], batch.rewards.min())
-    high = jnp.maximum(controller["reward_max"], batch.rewards.max())
-    scale = 1.0 / (1.0 - config.discount)
-    top, bottom = jnp.maximum(high, 0.0) * scale, jnp.minimum(low, 0.0) * scale
-    ceiling = config.auto_value_margin * top
-    floor = bottom - 0.1 * (top - bottom)  # the divergence flag's own lower edge
-    tiny = 1e-6
-    ratio = (metrics["policy_q_std"] + tiny) / (metrics["q_ensemble_std"] + tiny)
-    if config.auto_signal == "distance":
-        name, signal, first = "distance", metrics["action_distance"] + tiny, 0.5
-        target = jnp.asarray(config.auto_distance_ratio, jnp.float32)
-    else:
-        name, signal, first = "ratio", ratio, 0.0
-        target = jnp.asarray(config.auto_spread_ratio, jnp.float32)
-    calibration = {}
-    if config.auto_calibration_steps:
-        calibrating = step <= config.auto_calibration_steps
-        counted = calibrating & (step > first * config.auto_calibration_steps)
-        total = controller[f"{name}_sum"] + jnp.where(counted, signal, 0.0)
-        count = controller[f"{name}_count"] + jnp.where(counted, 1.0, 0.0)
-        calibration = {f"{name}_sum": total, f"{name}_count": count}
-        target = target * total / jnp.maximum(count, 1.0)
-    error = jnp.clip(jnp.log(signal / jnp.maximum(target, tiny)), -1.0, 1.0)
-    p = jnp.clip(controller["p"] + config.auto_rate * error, config.auto_min_p, 1.0)
-    if config.auto_calibration_steps:
-        p = jnp.where(calibrating, controller["p"], p)
-    values = jnp.stack([metrics["q_mean"], metrics["actor_q_mean"]])
-    out_of_range = jnp.any((values > ceiling) | (values < floor)) | ~jnp.all(jnp.isfinite(values))
-    p = jnp.where(out_of_range, 1.0, p)
-    metrics = {"auto_p": p, "spread_ratio": ratio, "value_ceiling": ceiling}
-    if config.auto_calibration_steps:
-        metrics["spread_target" if name == "ratio" else "distance_target"] = target
-    return {"p": p, "reward_min": low, "reward_max": high, **calibration}, metrics
 
 
 def critic_step(state, batch: Batch, key, config: EABCConfig, max_action: float):
@@ -498,7 +403,7 @@ def update(
     # The quantile rule reads the critics before this step's update (the authors' order).
     keep = None
     if config.bc_weight == "quantile":  # evaluated inside the actor step, not on every step
-        keep = functools.partial(quantile_keep, state.critic, batch, config)
+        keep = functools.partial(bc_weights.quantile_keep, state.critic, batch, config)
     p = state.controller["p"] if config.bc_weight == "auto" else None
     critic, critic_opt, critic_metrics = critic_step(state, batch, critic_key, config, max_action)
     step = state.step + 1
@@ -507,7 +412,7 @@ def update(
     )
     controller, controller_metrics = state.controller, {}
     if config.bc_weight == "auto":
-        adapted, controller_metrics = adapt_confidence_level(
+        adapted, controller_metrics = bc_weights.adapt_confidence_level(
             state.controller, batch, {**critic_metrics, **actor_metrics}, config, step
         )
         updated = step % config.policy_freq == 0
