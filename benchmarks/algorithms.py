@@ -4,10 +4,11 @@
     python benchmarks/algorithms.py --algos eabc td3bc  # a subset
     python benchmarks/algorithms.py --seeds 5           # also: 5 EABC seeds vmapped vs per core
 
-Each figure is the median of ``--repeats`` compiled chunks of ``--steps`` gradient steps (batch 256)
-on a 1M-transition dataset with hopper's shapes (11-d observations, 3-d actions) resident in device
-memory, the same ``train_chunk`` the trainer runs. MOPO and MOReL are timed with an untrained
-dynamics model (its rollouts cost the same; fitting it, once per run, is not included).
+Each figure is the median of ``--repeats`` compiled chunks of ``--steps`` gradient steps (the
+algorithm's batch: 256, ReBRAC's 1024) on a 1M-transition dataset with hopper's shapes (11-d
+observations, 3-d actions) resident in device memory, the same ``train_chunk`` the trainer runs.
+MOPO and MOReL are timed with an untrained dynamics model (its rollouts cost the same; fitting it,
+once per run, is not included).
 """
 
 from __future__ import annotations
@@ -46,9 +47,15 @@ def measure(algo: str, steps: int, repeats: int, seeds: int = 1) -> list[float]:
     """Total steps/s (summed over ``seeds`` vmapped seeds when seeds > 1)."""
     import jax
 
+    from eabc.agents import get_algorithm
+    from eabc.agents.common import BatchWithNextActions
     from eabc.training.chunks import train_chunk, train_chunk_seeds
 
+    algorithm = get_algorithm(algo)
     data = fake_data(OBS_DIM, ACT_DIM)
+    if algorithm.next_actions:  # random next actions: speed does not depend on values
+        data = BatchWithNextActions(**vars(data), next_actions=data.actions[::-1])
+    batch_size = algorithm.batch_size
     state, update = agent(algo)
     key = jax.random.PRNGKey(1)
     if seeds > 1:
@@ -57,12 +64,12 @@ def measure(algo: str, steps: int, repeats: int, seeds: int = 1) -> list[float]:
         chunk = train_chunk_seeds
     else:
         chunk = train_chunk
-    state, key, _ = chunk(state, key, data, update, 256, steps)  # compile and warm up
+    state, key, _ = chunk(state, key, data, update, batch_size, steps)  # compile and warm up
     jax.block_until_ready(state)
     rates = []
     for _ in range(repeats):
         start = time.perf_counter()
-        state, key, metrics = chunk(state, key, data, update, 256, steps)
+        state, key, metrics = chunk(state, key, data, update, batch_size, steps)
         jax.block_until_ready((state, metrics))
         rates.append(seeds * steps / (time.perf_counter() - start))
     return rates
@@ -114,7 +121,7 @@ def main() -> None:
 
     import jax
 
-    print(f"{jax.default_backend()} backend, {os.cpu_count()} cores; hopper shapes, batch 256\n")
+    print(f"{jax.default_backend()} backend, {os.cpu_count()} cores; hopper shapes\n")
     print(f"{'algorithm':14s} {'steps/s':>9s} {'h per 1M steps':>15s}")
     for algo in args.algos:
         # The slow ones in shorter chunks: EDAC's 50 critics, UWAC's 100 dropout passes per estimate.

@@ -22,6 +22,17 @@ class Batch:
     """1.0 where the episode terminated (not where it was truncated by a time limit)."""
 
 
+@pytree.dataclass
+class BatchWithNextActions(Batch):
+    """A :class:`Batch` with the data's next actions, for the algorithms whose contract asks
+    (``next_actions``); a separate type, so that states holding a plain ``Batch`` (MOPO's model
+    buffer) keep their checkpoint layout."""
+
+    next_actions: jax.Array
+    """The action the data took at s': the next row's where it continues the episode; where the
+    data has none (a terminal, a time-limit end, the last row) the row's own action."""
+
+
 def apply_gradients(tx: optax.GradientTransformation, grads, opt_state, params):
     """One optimiser step: ``(new params, new optimiser state)``."""
     updates, opt_state = tx.update(grads, opt_state, params)

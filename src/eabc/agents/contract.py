@@ -70,6 +70,12 @@ class Algorithm:
     """``resolve(config, dataset_name, steps, given) -> config``: settings that depend on the data
     or the run's length (``steps``; None when unknown) (Table 3's p, IQL's schedule), where the user did not set them (``given``
     is the set of names they set)."""
+    batch_size: int = 256
+    """The mini-batch size a run trains with where the user gives none (``--batch-size``):
+    Table 2's 256, ReBRAC's 1024."""
+    next_actions: bool = False
+    """Its batches carry the data's action at s' (:class:`~eabc.agents.common.BatchWithNextActions`,
+    e.g. ReBRAC's critic penalty); others get a plain :class:`~eabc.agents.common.Batch`."""
     step_metrics: frozenset[str] = CRITIC_METRICS
     """Metrics averaged over every step of a chunk (see :data:`CRITIC_METRICS`)."""
     steps_per_s: float = 60.0

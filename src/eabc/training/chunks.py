@@ -15,20 +15,35 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from eabc.agents.common import Batch
+from eabc.agents.common import Batch, BatchWithNextActions
 from eabc.agents.contract import CRITIC_METRICS
 from eabc.data.dataset import Dataset, Normalizer
 
 
-def device_data(dataset: Dataset, normalizer: Normalizer) -> Batch:
-    """The whole dataset as one device-resident batch (observations normalised once, up front)."""
-    return Batch(
-        observations=jnp.asarray(normalizer(dataset.observations)),
-        actions=jnp.asarray(dataset.actions),
-        rewards=jnp.asarray(dataset.rewards),
-        next_observations=jnp.asarray(normalizer(dataset.next_observations)),
-        dones=jnp.asarray(dataset.terminals, jnp.float32),
-    )
+def device_data(dataset: Dataset, normalizer: Normalizer, next_actions: bool = False) -> Batch:
+    """The whole dataset as one device-resident batch (observations normalised once, up front),
+    with the data's next actions (:func:`data_next_actions`) where ``next_actions`` asks."""
+    fields = {
+        "observations": jnp.asarray(normalizer(dataset.observations)),
+        "actions": jnp.asarray(dataset.actions),
+        "rewards": jnp.asarray(dataset.rewards),
+        "next_observations": jnp.asarray(normalizer(dataset.next_observations)),
+        "dones": jnp.asarray(dataset.terminals, jnp.float32),
+    }
+    if next_actions:
+        return BatchWithNextActions(**fields, next_actions=jnp.asarray(data_next_actions(dataset)))
+    return Batch(**fields)
+
+
+def data_next_actions(dataset: Dataset) -> np.ndarray:
+    """The action the data took at each transition's s': the next row's, where that row continues
+    the episode (the transition ends by neither a terminal nor a time limit, and the next row's
+    observation is its s'); elsewhere the row's own action (the data has no other)."""
+    ends = dataset.terminals | dataset.timeouts
+    continues = ~ends[:-1] & np.all(dataset.observations[1:] == dataset.next_observations[:-1], 1)
+    out = dataset.actions.copy()
+    out[:-1][continues] = dataset.actions[1:][continues]
+    return out
 
 
 FAST_COMPILE_ENV = "EABC_FAST_COMPILE"

@@ -47,8 +47,8 @@ class TrainConfig:
     """Seeds network initialisation and batch sampling; evaluation uses seed + 100."""
     steps: int = 1_000_000
     """Gradient steps."""
-    batch_size: int = 256
-    """Mini-batch size N."""
+    batch_size: int | None = None
+    """Mini-batch size N; unset: the algorithm's (256; ReBRAC 1024)."""
     eval_interval: int = 5000
     """Evaluate every this many gradient steps."""
     eval_episodes: int = 10
@@ -63,6 +63,8 @@ class TrainConfig:
     """Where built-in datasets are made (default $EABC_CACHE_DIR or ~/.cache/eabc)."""
 
     def __post_init__(self):
+        if self.batch_size is None:  # set here, so config.json records the size trained with
+            object.__setattr__(self, "batch_size", get_algorithm(self.algo).batch_size)
         for name in ("steps", "batch_size", "eval_interval", "eval_episodes", "log_interval"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
@@ -198,7 +200,8 @@ def _pretrain(run: Run) -> None:
     """The algorithm's one-off pretraining of a run at step 0 (continuing what a killed run saved
     of it), then the run's first checkpoint: a run killed after it does not pretrain again."""
     progress = _FileProgress(run.run_dir / PRETRAIN_PROGRESS)
-    data = device_data(prepared(run.algorithm, run.dataset), run.normalizer)
+    algorithm = run.algorithm
+    data = device_data(prepared(algorithm, run.dataset), run.normalizer, algorithm.next_actions)
     init_key, _ = _keys(run.config.seed)
     run.state["agent"] = run.algorithm.pretrain(
         run.state["agent"], data, jax.random.fold_in(init_key, 1), run.agent_config,

@@ -86,7 +86,7 @@ def _train_seeds(runs: list[Run], progress: bool) -> list[dict[str, Any]]:
     config = first.config
     dataset = first.dataset
     dataset = prepared(first.algorithm, dataset)
-    data = device_data(dataset, first.normalizer)
+    data = device_data(dataset, first.normalizer, first.algorithm.next_actions)
     q_range = value_range(dataset.rewards, getattr(first.agent_config, "discount", None))
     update = functools.partial(
         first.algorithm.update, config=first.agent_config, max_action=first.max_action
