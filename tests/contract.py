@@ -54,7 +54,8 @@ def check_contract(tmp_path, pendulum_dataset, algo: str) -> None:
 def _check_contract(tmp_path, pendulum_dataset, algo: str) -> None:
     algorithm = get_algorithm(algo)
     overrides = tiny_settings(algorithm)
-    for name in ("confidence_level", "quantile_level"):  # Pendulum is in neither table
+    # Pendulum is in none of the per-dataset tables (EABC's p and q, ReBRAC's betas).
+    for name in ("confidence_level", "quantile_level", "actor_bc_weight", "critic_bc_weight"):
         if name in algorithm.settings() and getattr(algorithm.preset, name) is None:
             overrides[name] = 0.5
     config = trainer.TrainConfig(

@@ -7,10 +7,10 @@
 
 from __future__ import annotations
 
-from eabc.agents import bc, bear, cql, eabc, iql, mopo, morel, sac, uwac, wpc
+from eabc.agents import bc, bear, cql, eabc, iql, mopo, morel, rebrac, sac, uwac, wpc
 from eabc.agents.contract import Algorithm
 
-MODULES = (eabc, bc, wpc, iql, cql, sac, bear, uwac, mopo, morel)
+MODULES = (eabc, bc, wpc, iql, cql, sac, bear, uwac, mopo, morel, rebrac)
 """The registered algorithm files, in the order ``--help`` lists their algorithms."""
 
 ALGORITHMS: dict[str, Algorithm] = {

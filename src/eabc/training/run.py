@@ -42,7 +42,7 @@ class TrainConfig:
     """A built-in name (hopper-random, ...), a .hdf5/.npz path, or minari:ID."""
     algo: str = "eabc"
     """Algorithm: eabc, eabc-ln, eabc-trust, eabc-robust, eabc-auto, eabc-quantile, td3bc, td3, bc, iql, cql, cql-lagrange, wpc,
-    sac-n, edac, edac-10, bear, uwac, mopo or morel."""
+    sac-n, edac, edac-10, bear, uwac, mopo, morel or rebrac."""
     seed: int = 0
     """Seeds network initialisation and batch sampling; evaluation uses seed + 100."""
     steps: int = 1_000_000
