@@ -25,7 +25,12 @@ def write_run(run_dir, algo, observations, outputs, seed=0):
         actor[f"b{i}"] = rng.uniform(-bound, bound, fan_out).astype(np.float32)
     normalizer = Normalizer.fit(observations)
     run_dir.mkdir()
-    config = {"train": {"algo": algo}, "dataset": {"name": "pendulum"}, "max_action": 2.0}
+    config = {
+        "train": {"algo": algo},
+        "agent": {"hidden_dims": [32, 32]},  # what the export checks the actor's shapes against
+        "dataset": {"name": "pendulum"},
+        "max_action": 2.0,
+    }
     checkpoint.save_json(run_dir / checkpoint.CONFIG, config)
     layout = get_algorithm(algo).state_layout
     # CQL's state (layout 2) holds its SAC state, and the actor in it, as the trainer writes it.

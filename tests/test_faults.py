@@ -158,10 +158,15 @@ def test_corrupt_truncated_and_foreign_checkpoints_are_refused(
     (run_dir / checkpoint.CHECKPOINT).write_bytes(good[:-40])
     assert trainer.resume(run_dir, pendulum_dataset, lock=False).step == 400
 
-    # Another run's checkpoint (K = 2 EABC) in a TD3+BC run of other width is refused.
+    # Another run's checkpoint (K = 2 EABC) in a TD3+BC run of other width is refused: by the
+    # run it records, and where it records none (an older eabc's), by its structure.
     other = start(tmp_path, "td3bc", pendulum_dataset, {"hidden_dims": (16, 16)}, algo="td3bc")
     other.lock.release()
     (tmp_path / "td3bc" / checkpoint.CHECKPOINT).write_bytes(good)
+    with pytest.raises(CheckpointError, match=r"belongs to run \w+ \(eabc, .* is run \w+ \(td3bc"):
+        trainer.resume(tmp_path / "td3bc", pendulum_dataset)
+    raw = checkpoint.load_raw(straight)
+    checkpoint.save(tmp_path / "td3bc", {k: v for k, v in raw.items() if k != checkpoint.IDENTITY})
     with pytest.raises(CheckpointError, match="not a checkpoint of this td3bc run"):
         trainer.resume(tmp_path / "td3bc", pendulum_dataset)
 
@@ -183,8 +188,11 @@ def test_resume_refuses_other_data_and_old_runs_skip_the_check(
     with pytest.raises(DatasetError, match="content fingerprint"):
         trainer.resume(run_dir, changed)
     config = json.loads((run_dir / "config.json").read_text())
-    del config["dataset"]["fingerprint"]  # a run from before the fingerprint
+    del config["dataset"]["fingerprint"]  # a run from before the fingerprint (and identities)
+    del config["run_id"]
     (run_dir / "config.json").write_text(json.dumps(config))
+    raw = checkpoint.load_raw(run_dir)
+    checkpoint.save(run_dir, {k: v for k, v in raw.items() if k != checkpoint.IDENTITY})
     assert trainer.resume(run_dir, changed, lock=False).step == 400
 
 

@@ -17,9 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from eabc import pytree
-from eabc.agents import get_algorithm
 from eabc.training import checkpoint
-from eabc.training.checkpoint import read_config
+from eabc.training.run import read_checkpoint
 
 OPSET = 17
 """ONNX operator set: every op used (Sub, Div, MatMul, Add, Relu, Tanh, Mul) is older than this."""
@@ -40,11 +39,7 @@ def export_onnx(run_dir: str | Path, path: str | Path) -> Path:
         ) from None
 
     run_dir = Path(run_dir)
-    config = read_config(run_dir)
-    algorithm = get_algorithm(config["train"]["algo"])
-    raw = checkpoint.check_layout(
-        checkpoint.load_raw(run_dir), run_dir, algorithm.name, algorithm.state_layout
-    )
+    config, algorithm, raw = read_checkpoint(run_dir)  # this run's own, of its layout and shapes
     actor = {k: np.asarray(v, np.float32) for k, v in pytree.find(raw["agent"], "actor").items()}
     if any(name.startswith("g") for name in actor):
         raise ValueError(f"{run_dir}: the actor has LayerNorm layers, which the export lacks")

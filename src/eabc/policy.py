@@ -11,25 +11,19 @@ from pathlib import Path
 import numpy as np
 
 from eabc import pytree
-from eabc.agents import get_algorithm
 from eabc.data.dataset import Normalizer
 from eabc.evaluation import Policy
-from eabc.training import checkpoint
-from eabc.training.checkpoint import read_config
+from eabc.training.run import read_checkpoint
 
 
 def load_policy(run_dir: str | Path) -> Policy:
     """The policy of the latest checkpoint in ``run_dir``.
 
     The observation normaliser stored in the checkpoint is applied inside, so the callable takes
-    raw environment observations.
+    raw environment observations. A checkpoint of another run (its recorded identity, or its
+    actor's shapes, differ from the run's config.json) is refused.
     """
-    run_dir = Path(run_dir)
-    config = read_config(run_dir)
-    algorithm = get_algorithm(config["train"]["algo"])
-    raw = checkpoint.check_layout(
-        checkpoint.load_raw(run_dir), run_dir, algorithm.name, algorithm.state_layout
-    )
+    config, algorithm, raw = read_checkpoint(run_dir)  # this run's own, of its layout and shapes
     actor = {k: np.asarray(v) for k, v in pytree.find(raw["agent"], "actor").items()}
     normalizer = Normalizer(
         np.asarray(raw["normalizer"]["mean"]), np.asarray(raw["normalizer"]["std"])

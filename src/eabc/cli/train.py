@@ -26,7 +26,12 @@ class Train:
     """Where the run's config, checkpoint, log.csv, TensorBoard events and curve.png go
     (default runs/DATASET_ALGO_seedS)."""
     resume: str | None = None
-    """Continue the run in this directory from its last checkpoint (other options are ignored)."""
+    """Continue the run in this directory from its last checkpoint (other options are ignored).
+    A finished run is left as it is; a run whose checkpoint is missing although its log.csv or
+    summary.json shows it got past its first checkpoint is refused (see --restart)."""
+    restart: bool = False
+    """With --resume, for a run whose checkpoint is missing: train it again from step 0, deleting
+    its log.csv and summary.json (without this flag such a run is refused, never retrained)."""
     progress: bool = True
     """Show a progress bar."""
     dry_run: bool = False
@@ -120,11 +125,20 @@ def run_train(cmd: Train) -> dict:
         print("\n".join(f"{key:<12} {value}" for key, value in plan.items()))
         return plan
 
+    if cmd.restart and not cmd.resume:
+        raise ValueError("--restart goes with --resume RUN_DIR (a new run starts from step 0)")
+
     def start():
         overrides = dataclasses.asdict(cmd.agent) | parse_settings(cmd.set)
         return trainer.start(cmd.config, default_run_dir(cmd), overrides)
 
-    summary = _start_or_resume_then_train(cmd, trainer.resume, start, trainer.train)
+    def resume(run_dir):
+        run = trainer.resume(run_dir, restart=cmd.restart)
+        if run.step >= run.config.steps:
+            print(f"{run_dir} is finished ({run.step} steps): nothing to train", file=sys.stderr)
+        return run
+
+    summary = _start_or_resume_then_train(cmd, resume, start, trainer.train)
     if summary.get("diverged_step") is not None:
         raise RuntimeError(f"training stopped at step {summary['diverged_step']} on NaN/inf")
     return summary

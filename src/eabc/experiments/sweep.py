@@ -45,6 +45,7 @@ def _status(run: RunSpec, root: Path) -> tuple[str, int, str]:
     """:func:`status` and why, in words (for ``changed`` and ``broken``)."""
     from eabc import pytree  # noqa: PLC0415
     from eabc.training import checkpoint  # noqa: PLC0415
+    from eabc.training.run import lost_progress  # noqa: PLC0415
 
     run_dir = root / RUNS / run.run_id
     target = run.train_config().steps
@@ -69,6 +70,10 @@ def _status(run: RunSpec, root: Path) -> tuple[str, int, str]:
             return "partial", int(pytree.find(checkpoint.load_raw(run_dir)["agent"], "step")), ""
         except (ValueError, KeyError, TypeError) as error:
             return "broken", 0, str(error)
+    train = run.train_config()  # a run past its first checkpoint is not started again unasked
+    lost = lost_progress(run_dir, train.steps, train.checkpoint_interval)
+    if lost:
+        return "broken", 0, f"{lost}; restore it, or delete the run directory to train it again"
     return "pending", 0, ""
 
 

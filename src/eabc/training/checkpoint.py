@@ -7,7 +7,9 @@ without a checksum).
 
 A training run's payload records its agent state's layout (``state_layout``, the algorithm's
 :attr:`~eabc.agents.contract.Algorithm.state_layout`; absent in files from before it: layout 1),
-so that a checkpoint of another layout is refused with a message that says why.
+so that a checkpoint of another layout is refused with a message that says why, and the identity
+of the run that wrote it (``run``, :mod:`eabc.training.identity`), so that no other run's file is
+used as this run's.
 """
 
 from __future__ import annotations
@@ -30,6 +32,8 @@ TRAILER = b"EABCSUM1"
 """Marks a checkpoint that ends in its payload's SHA-256 (format version 1)."""
 LAYOUT = "state_layout"
 """The payload's entry that records the agent state's layout."""
+IDENTITY = "run"
+"""The payload's entry that records which run wrote it (:mod:`eabc.training.identity`)."""
 
 
 class CheckpointError(ValueError):
@@ -69,11 +73,18 @@ def atomic_write(path: Path, data: bytes) -> None:
         raise
 
 
-def save(run_dir: Path, payload: dict[str, Any], state_layout: int | None = None) -> None:
+def save(
+    run_dir: Path,
+    payload: dict[str, Any],
+    state_layout: int | None = None,
+    identity: dict[str, Any] | None = None,
+) -> None:
     """Save a pytree of arrays and plain values (train state, key, normaliser, history), with
-    the agent state's layout when given."""
+    the agent state's layout and the identity of the run that writes it when given."""
     if state_layout is not None:
         payload = {**payload, LAYOUT: state_layout}
+    if identity is not None:
+        payload = {**payload, IDENTITY: identity}
     write_tree(Path(run_dir) / CHECKPOINT, payload)
 
 
@@ -145,7 +156,19 @@ def load(
     """Restore into the structure of ``template``, refusing a checkpoint of another state layout
     than ``state_layout`` (``algo``'s) or whose structure, shapes or dtypes differ from it
     (another run's checkpoint: ``what`` names this run's settings)."""
-    raw = check_layout(load_raw(run_dir), run_dir, algo, state_layout)
+    return restore(load_raw(run_dir), run_dir, template, what, algo, state_layout)
+
+
+def restore(
+    raw: dict[str, Any],
+    run_dir: Path,
+    template: dict[str, Any],
+    what: str = "this run",
+    algo: str = "this algorithm",
+    state_layout: int = 1,
+) -> dict[str, Any]:
+    """:func:`load` of a payload already read (and its identity checked and removed)."""
+    raw = check_layout(raw, run_dir, algo, state_layout)
     check_structure(raw, pytree.to_state_dict(template), Path(run_dir) / CHECKPOINT, what)
     return pytree.from_state_dict(template, raw)
 

@@ -111,6 +111,77 @@ def read_log(path: Path) -> list[dict[str, str]]:
         return [{k: v for k, v in row.items() if v not in ("", None)} for row in csv.DictReader(f)]
 
 
+def log_problem(path: Path, evaluations: dict[str, dict], step: int) -> str | None:
+    """Why the ``log.csv`` at ``path`` does not hold what a checkpoint at ``step`` with the
+    evaluation history ``evaluations`` says was logged (missing, unreadable, cut short, lacking or
+    contradicting an evaluation); None when it holds it. Rows after ``step`` are not judged (a
+    run logs a few rows past its last checkpoint)."""
+    if not path.exists():
+        return f"{path} is missing" if step > 0 or evaluations else None
+    rows, complete = readable_rows(path)
+    if rows is None:
+        return f"{path} cannot be read"
+    if not complete:
+        return f"{path} is cut short (its last line is incomplete)"
+    last = max((int(float(row["step"])) for row in rows), default=0)
+    if last < step:
+        return f"{path} ends at step {last}, before the checkpoint's step {step}"
+    logged = {
+        int(float(row["step"])): _num(row.get("return_mean"))
+        for row in rows
+        if int(float(row["step"])) <= step and not math.isnan(_num(row.get("return_mean")))
+    }
+    held = {int(s): float(e["return_mean"]) for s, e in evaluations.items()}
+    for at in sorted(set(held) | set(logged)):
+        if at not in logged:
+            return f"{path} lacks the evaluation at step {at} that the checkpoint holds"
+        if at not in held or not math.isclose(logged[at], held[at], rel_tol=1e-9, abs_tol=1e-9):
+            return f"{path} has an evaluation at step {at} that the checkpoint does not hold"
+    return None
+
+
+def rebuild_log(path: Path, evaluations: dict[str, dict], step: int) -> None:
+    """Rewrite ``log.csv`` so that it holds the checkpoint's evaluations: the readable rows up to
+    ``step`` are kept, each evaluation's cells are the checkpoint's, and an evaluation the log lost
+    becomes a row of its own (the training metrics of lost rows cannot come back)."""
+    rows, complete = readable_rows(path) if path.exists() else ([], True)
+    rows = (rows or [])[: None if complete else -1]
+    by_step = {int(float(row["step"])): row for row in rows if int(float(row["step"])) <= step}
+    for cells in by_step.values():
+        for key in [k for k in cells if k.split("_")[0] in ("return", "score")]:
+            del cells[key]  # an evaluation the checkpoint does not hold is not one of this run's
+    for at, evaluation in evaluations.items():
+        cells = by_step.setdefault(int(at), {"step": str(int(at))})
+        cells.update({k: str(v) for k, v in evaluation.items()})
+    ordered = [by_step[at] for at in sorted(by_step)]
+    columns = list(dict.fromkeys(k for row in ordered for k in row))
+    text = io.StringIO(newline="")
+    writer = csv.DictWriter(text, columns, restval="")
+    writer.writeheader()
+    writer.writerows(ordered)
+    atomic_write(path, text.getvalue().encode())
+
+
+def readable_rows(path: Path) -> tuple[list[dict[str, str]] | None, bool]:
+    """``log.csv``'s rows (None if it cannot be read as a log) and whether its last line is
+    whole (a file cut mid-line ends without a line break)."""
+    try:
+        data = path.read_bytes()
+        rows = read_log(path)
+        for row in rows:
+            int(float(row["step"]))
+    except (OSError, UnicodeDecodeError, csv.Error, KeyError, ValueError, TypeError):
+        return None, True
+    return rows, not data or data.endswith(b"\n")
+
+
+def _num(text) -> float:
+    try:
+        return float(text) if text not in (None, "") else math.nan
+    except ValueError:
+        return math.nan
+
+
 def _numbers(cells: dict[str, str]) -> dict[str, float]:
     return {k: int(float(v)) if k == "step" else float(v) for k, v in cells.items()}
 

@@ -6,11 +6,19 @@ resumes and is extended.
 the loop (:mod:`eabc.training.trainer`) continues bit for bit. The agent's settings are the
 algorithm's preset, the user's overrides and what the algorithm resolves against the dataset and
 the run's length (:func:`resolve_agent_config`).
+
+A run directory's results are never thrown away unasked: a run whose checkpoint is gone but whose
+``summary.json`` or ``log.csv`` shows it got past its first checkpoint is refused rather than
+trained again from step 0 (``restart=True`` asks for that), and every checkpoint read is checked
+to be this run's own (:mod:`eabc.training.identity`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
+import math
+import os
 import shutil
 import sys
 from pathlib import Path
@@ -19,11 +27,12 @@ from typing import Any
 import jax
 import numpy as np
 
+from eabc import pytree
 from eabc.agents import Algorithm, get_algorithm, validation
 from eabc.data.dataset import Dataset, DatasetError, Normalizer
 from eabc.data.sources import load_dataset
 from eabc.evaluation import Evaluator, check_spaces
-from eabc.training import checkpoint
+from eabc.training import checkpoint, identity, logger
 from eabc.training.checkpoint import CONFIG, read_config
 from eabc.training.chunks import device_data
 from eabc.training.lock import RunLock
@@ -76,6 +85,22 @@ class TrainConfig:
                     f"{name} must be a multiple of log_interval={self.log_interval}: "
                     f"e.g. {name} {fits}, or a log_interval that divides {value}"
                 )
+        if self.cache_dir is not None:  # checked now, not after minutes of making a dataset
+            check_cache_dir(self.cache_dir, "cache_dir")
+
+
+def check_cache_dir(path: str | Path, what: str) -> None:
+    """``ValueError`` naming ``what`` when ``path`` cannot become a directory: it, or the nearest
+    of its parents that exists, is a file."""
+    where = Path(path).expanduser()
+    while not where.exists() and where != where.parent:
+        where = where.parent
+    if where.exists() and not where.is_dir():
+        inside = "" if where == Path(path).expanduser() else f" ({where} is a file)"
+        raise ValueError(
+            f"{what} {path} is not a directory{inside}: give a directory for the datasets and "
+            "compiled programs (it is made if missing), or leave it unset for ~/.cache/eabc"
+        )
 
 
 def resolve_agent_config(
@@ -113,6 +138,8 @@ class Run:
     """The run directory's writer lock, held from start/resume until training ends."""
     diverged_step: int | None = None
     """The step whose losses or Q values were NaN/inf; training stopped there."""
+    identity: dict[str, Any] | None = None
+    """Which run this is (:func:`eabc.training.identity.of_config`), recorded in every checkpoint."""
 
     @property
     def step(self) -> int:
@@ -130,6 +157,8 @@ def start(
     run_dir = Path(run_dir)
     _refuse_existing(run_dir)
     config = _absolute_paths(config)
+    if config.cache_dir is None and os.environ.get("EABC_CACHE_DIR"):
+        check_cache_dir(os.environ["EABC_CACHE_DIR"], "$EABC_CACHE_DIR")
     dataset = dataset if dataset is not None else load_dataset(config.dataset, config.cache_dir)
     agent_config = resolve_agent_config(
         config.algo, dataset.name, agent_overrides or {}, config.steps
@@ -141,22 +170,23 @@ def start(
     except BaseException:
         run.lock.release()
         raise
-    checkpoint.save_json(
-        run_dir / CONFIG,
-        {
-            "train": dataclasses.asdict(config),
-            "agent": dataclasses.asdict(agent_config),
-            "dataset": {
-                "name": dataset.name,
-                "size": dataset.size,
-                "fingerprint": dataset.fingerprint(),
-                "env_id": run.evaluator.env_id,
-                "ref_min_score": dataset.ref_min_score,
-                "ref_max_score": dataset.ref_max_score,
-            },
-            "max_action": run.max_action,
+    _remove_temporaries(run_dir)
+    saved = {
+        "run_id": identity.new_run_id(),
+        "train": dataclasses.asdict(config),
+        "agent": dataclasses.asdict(agent_config),
+        "dataset": {
+            "name": dataset.name,
+            "size": dataset.size,
+            "fingerprint": dataset.fingerprint(),
+            "env_id": run.evaluator.env_id,
+            "ref_min_score": dataset.ref_min_score,
+            "ref_max_score": dataset.ref_max_score,
         },
-    )
+        "max_action": run.max_action,
+    }
+    checkpoint.save_json(run_dir / CONFIG, saved)
+    run.identity = identity.of_config(read_config(run_dir))  # as every reader will see it
     if run.algorithm.pretrain is not None:
         try:
             _pretrain(run)
@@ -207,7 +237,7 @@ def _pretrain(run: Run) -> None:
         run.state["agent"], data, jax.random.fold_in(init_key, 1), run.agent_config,
         run.normalizer, progress,
     )  # fmt: skip
-    checkpoint.save(run.run_dir, run.state, run.algorithm.state_layout)
+    checkpoint.save(run.run_dir, run.state, run.algorithm.state_layout, run.identity)
     progress.path.unlink(missing_ok=True)
 
 
@@ -237,15 +267,24 @@ def resume(
     dataset: Dataset | None = None,
     lock: bool = True,
     steps: int | None = None,
+    restart: bool = False,
 ) -> Run:
     """Reopen a run from its directory and latest checkpoint (from step 0 if it died before its
     first one). With ``lock`` (for training) the run holds the directory's writer lock until
     :func:`train` ends; without it (to evaluate) nothing in the directory is written. ``steps``
-    extends the run to that many steps (config.json records the new length)."""
+    extends the run to that many steps (config.json records the new length).
+
+    A run whose checkpoint is missing although it got past its first one (finished, or its log
+    goes further) is refused (:class:`ProgressLostError`) unless ``restart``, which trains it
+    again from step 0, replacing its log.csv and summary.json. Resumed for training, a run's
+    log.csv that lacks what its checkpoint holds (deleted, cut short) is rebuilt from the
+    checkpoint's evaluation history, and temporary files a killed writer left are removed."""
     run_dir = Path(run_dir)
     held = RunLock(run_dir).acquire() if lock else None
     try:
-        run = _resume(run_dir, dataset, write=lock)
+        if lock:
+            _remove_temporaries(run_dir)
+        run = _resume(run_dir, dataset, write=lock, restart=restart)
         if steps is not None and steps != run.config.steps:
             run = _extend(run, steps)
     except BaseException:
@@ -268,9 +307,74 @@ def _extend(run: Run, steps: int) -> Run:
     return dataclasses.replace(run, config=dataclasses.replace(run.config, steps=steps))
 
 
-def _resume(run_dir: Path, dataset: Dataset | None, write: bool) -> Run:
+class ProgressLostError(RuntimeError):
+    """A run's checkpoint is gone but its results show progress: resuming would start it again."""
+
+
+def _remove_temporaries(run_dir: Path) -> None:
+    """Temporary files of writes a kill interrupted (``.NAME.XXXX.tmp``, never renamed); only the
+    writer holding the run's lock calls this, so none of them is being written."""
+    for path in Path(run_dir).glob(".*.tmp"):
+        if path.is_file():
+            path.unlink(missing_ok=True)
+
+
+def lost_progress(run_dir: Path, steps: int, checkpoint_interval: int) -> str | None:
+    """What ``run_dir``, which has no checkpoint, has done that training it from step 0 would
+    throw away: finished (``summary.json``, or a log reaching ``steps``) or logged past its first
+    checkpoint (so one was written and is gone); None for a run killed before its first
+    checkpoint, which loses nothing by starting again."""
+    summary_path = run_dir / SUMMARY
+    if summary_path.exists():
+        try:
+            summary = json.loads(summary_path.read_text())
+            done = f"{int(summary['steps'])} of {steps} steps"
+            if summary.get("diverged_step") is not None:
+                done += f", stopped on NaN/inf at step {summary['diverged_step']}"
+        except (OSError, ValueError, KeyError, TypeError):
+            done = f"{SUMMARY} unreadable"
+        return (
+            f"{run_dir} is finished ({done}; {SUMMARY}) but its {checkpoint.CHECKPOINT} is missing"
+        )
+    if not (run_dir / LOG).exists():
+        return None
+    rows, _ = logger.readable_rows(run_dir / LOG)
+    if rows is None:
+        return f"{run_dir}'s {LOG} cannot be read and its {checkpoint.CHECKPOINT} is missing"
+    last = max((int(float(row["step"])) for row in rows), default=0)
+    if last >= steps:
+        return (
+            f"{run_dir} is finished ({LOG} reaches step {last} of {steps}) but its "
+            f"{checkpoint.CHECKPOINT} is missing"
+        )
+    if last > min(checkpoint_interval, steps):
+        return (
+            f"{run_dir} has trained to step {last} ({LOG}), past its first checkpoint, but its "
+            f"{checkpoint.CHECKPOINT} is missing"
+        )
+    return None
+
+
+def _resume(run_dir: Path, dataset: Dataset | None, write: bool, restart: bool = False) -> Run:
     saved = read_config(run_dir)
     config = TrainConfig(**saved["train"])
+    has_checkpoint = (run_dir / checkpoint.CHECKPOINT).exists()
+    if has_checkpoint and restart:
+        raise ValueError(
+            f"--restart trains a run again only when its checkpoint is missing; {run_dir} has "
+            f"one: resume without --restart to continue it"
+        )
+    lost = (
+        None if has_checkpoint else lost_progress(run_dir, config.steps, config.checkpoint_interval)
+    )
+    if lost and not write:
+        raise FileNotFoundError(f"{lost}: there is nothing to read")
+    if lost and not restart:
+        raise ProgressLostError(
+            f"{lost}; resuming would train it again from step 0 and replace its {LOG} and "
+            f"{SUMMARY}: restore the checkpoint, train in a new --run-dir, or pass --restart to "
+            "train this run again from step 0"
+        )
     algorithm = get_algorithm(config.algo)
     agent_config = _agent_config_from_json(algorithm, saved["agent"])
     dataset = dataset if dataset is not None else load_dataset(config.dataset, config.cache_dir)
@@ -286,18 +390,39 @@ def _resume(run_dir: Path, dataset: Dataset | None, write: bool) -> Run:
             f"changed from {expected[:12]}... to {dataset.fingerprint()[:12]}...); resume needs "
             "the same data: restore that file, or train a new run"
         )
-    if not (run_dir / checkpoint.CHECKPOINT).exists():
+    if not has_checkpoint:
         if not write:
             raise FileNotFoundError(f"no checkpoint in {run_dir}; the run has not saved one yet")
-        # Killed before its first checkpoint: nothing to continue from, so start it again.
+        run = _build(run_dir, config, agent_config, dataset, state=None)
+        # Killed before its first checkpoint (or --restart): nothing to continue from.
         for name in (LOG, SUMMARY, CURVE):
             (run_dir / name).unlink(missing_ok=True)
         shutil.rmtree(run_dir / "tb", ignore_errors=True)
-        run = _build(run_dir, config, agent_config, dataset, state=None)
+        run.identity = _identity(run_dir, saved)
         if algorithm.pretrain is not None:
             _pretrain(run)
         return run
-    return _build(run_dir, config, agent_config, dataset, state="checkpoint")
+    run = _build(run_dir, config, agent_config, dataset, state="checkpoint", saved=saved)
+    if write:
+        run.identity = _identity(run_dir, saved)
+        problem = logger.log_problem(run_dir / LOG, run.state["evaluations"], run.step)
+        if problem:
+            logger.rebuild_log(run_dir / LOG, run.state["evaluations"], run.step)
+            print(
+                f"warning: {problem}: rebuilt its evaluations up to step {run.step} from "
+                f"{checkpoint.CHECKPOINT} (the training metrics of lost rows are gone)",
+                file=sys.stderr,
+                flush=True,
+            )
+    return run
+
+
+def _identity(run_dir: Path, saved: dict) -> dict[str, Any]:
+    """The run's identity, giving a run from before run ids one (in its config.json) now."""
+    if not saved.get("run_id"):
+        saved = {"run_id": identity.new_run_id(), **saved}
+        checkpoint.save_json(run_dir / CONFIG, saved)
+    return identity.of_config(saved)
 
 
 def _agent_config_from_json(algorithm: Algorithm, fields: dict) -> Any:
@@ -306,12 +431,13 @@ def _agent_config_from_json(algorithm: Algorithm, fields: dict) -> Any:
     return validation.validate(algorithm.preset, algorithm.name, fields)
 
 
-def _build(run_dir, config, agent_config, dataset, state) -> Run:
+def _build(run_dir, config, agent_config, dataset, state, saved=None) -> Run:
     env_id = config.env or dataset.env_id
     if not env_id:
         raise DatasetError(
             f"{dataset.name} does not say which environment it came from; pass --env GYM_ID"
         )
+    _check_reference_scores(config, dataset)
     evaluator = Evaluator(
         env_id,
         config.seed + 100,
@@ -336,12 +462,66 @@ def _build(run_dir, config, agent_config, dataset, state) -> Run:
     if state == "checkpoint":
         what = f"this {config.algo} run ({_settings_text(algorithm, agent_config)}, {dataset.name})"
         template = {**fresh, "evaluations": None}
-        saved = checkpoint.load(run_dir, template, what, config.algo, algorithm.state_layout)
-        fresh = {**saved, "evaluations": saved["evaluations"] or {}}
-        normalizer = Normalizer(**{k: np.asarray(v) for k, v in saved["normalizer"].items()})
+        raw = identity.checked(checkpoint.load_raw(run_dir), run_dir, saved)
+        stored = checkpoint.restore(
+            raw, run_dir, template, what, config.algo, algorithm.state_layout
+        )
+        fresh = {**stored, "evaluations": stored["evaluations"] or {}}
+        normalizer = Normalizer(**{k: np.asarray(v) for k, v in stored["normalizer"].items()})
     return Run(
         run_dir, config, algorithm, agent_config, dataset, normalizer, evaluator, max_action, fresh
     )
+
+
+def _check_reference_scores(config: TrainConfig, dataset: Dataset) -> None:
+    """Refuse reference scores that make the normalised score undefined, before any training
+    (found at the first evaluation, they cost the whole first interval and left a broken run)."""
+    low, high = dataset.ref_min_score, dataset.ref_max_score
+    if low is None or high is None:
+        return
+    if not (math.isfinite(low) and math.isfinite(high)) or low == high:
+        raise DatasetError(
+            f"{config.dataset}: its reference scores ref_min_score={low} and ref_max_score={high} "
+            "make the normalised score 100 (return - min) / (max - min) undefined; set them to "
+            "two different finite returns (a random and an expert policy's) in the dataset file, "
+            "or remove both to report returns only"
+        )
+
+
+def read_checkpoint(run_dir: str | Path) -> tuple[dict, Algorithm, dict]:
+    """A run's config.json, algorithm and latest checkpoint payload, for a reader outside
+    training (``load_policy``, the ONNX export): the checkpoint's identity checked against
+    config.json, its state layout against the algorithm's, and its actor's and normaliser's
+    structure, shapes and dtypes against what the run's settings make."""
+    run_dir = Path(run_dir)
+    config = read_config(run_dir)
+    algorithm = get_algorithm(config["train"]["algo"])
+    raw = identity.checked(checkpoint.load_raw(run_dir), run_dir, config)
+    raw = checkpoint.check_layout(raw, run_dir, algorithm.name, algorithm.state_layout)
+    agent_config = _agent_config_from_json(algorithm, config.get("agent", {}))
+    path = run_dir / checkpoint.CHECKPOINT
+    what = f"this {algorithm.name} run ({_settings_text(algorithm, agent_config)})"
+    try:
+        actor = pytree.find(raw["agent"], "actor")
+        obs_dim = int(np.shape(raw["normalizer"]["mean"])[0])
+        outputs = int(np.shape(actor[f"b{sum(k.startswith('w') for k in actor) - 1}"])[0])
+    except (KeyError, IndexError, TypeError) as error:
+        raise checkpoint.CheckpointError(
+            f"{path} has no actor or normaliser where {what} keeps them ({error}); it is not a "
+            "checkpoint of this run"
+        ) from None
+    act_dim = outputs // 2 if algorithm.gaussian_actor else outputs
+    shapes = jax.eval_shape(
+        lambda key: algorithm.init(key, obs_dim, act_dim, agent_config), jax.random.PRNGKey(0)
+    )
+    zeros = jax.tree.map(lambda s: np.zeros(s.shape, s.dtype), pytree.to_state_dict(shapes))
+    template = {
+        "actor": pytree.find(zeros, "actor"),
+        "normalizer": {"mean": np.zeros(obs_dim, np.float32), "std": np.zeros(obs_dim, np.float32)},
+    }
+    found = {"actor": actor, "normalizer": raw["normalizer"]}
+    checkpoint.check_structure(found, template, path, what)
+    return config, algorithm, raw
 
 
 def _settings_text(algorithm: Algorithm, agent_config) -> str:

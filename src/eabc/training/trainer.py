@@ -212,7 +212,7 @@ def _after_chunk(
         _plot(run)
     logger.log(row)
     if run.step % config.checkpoint_interval == 0 or run.step == config.steps:
-        checkpoint.save(run.run_dir, run.state, run.algorithm.state_layout)
+        checkpoint.save(run.run_dir, run.state, run.algorithm.state_layout, run.identity)
     return row
 
 
