@@ -268,6 +268,9 @@ def run_results(cmd: Results) -> None:
     if runs.empty:
         print(f"no runs under {cmd.root}")
         return
+    unusable = runs["status"].isin(results.UNUSABLE)
+    for state, why in zip(runs.loc[unusable, "status"], runs.loc[unusable, "config"]):
+        print(f"{state}: {why}", file=sys.stderr)
     found = len(runs)
     runs = results.query(runs, list(cmd.filter))
     if runs.empty:
@@ -290,10 +293,10 @@ def run_report(cmd: Report) -> None:
     if not Path(cmd.root).is_dir() and not cmd.include:
         raise FileNotFoundError(f"{cmd.root} does not exist; give a sweep root or a run directory")
     runs, evaluations = results.collect(cmd.root)  # nothing yet on a new machine: --include
-    broken = runs[runs["status"] == "broken"]
-    for why in broken["config"]:
-        print(f"leaving out a broken run: {why}", file=sys.stderr)
-    runs = runs[runs["status"] != "broken"]
+    unusable = runs["status"].isin(results.UNUSABLE)
+    for state, why in zip(runs.loc[unusable, "status"], runs.loc[unusable, "config"]):
+        print(f"leaving out a {state} run: {why}", file=sys.stderr)
+    runs = runs[~unusable]
     repeats = results.combined_repeats()  # none without --include: one root holds a run once
     if cmd.include:
         archives = [results.read_archive(d) for d in cmd.include]

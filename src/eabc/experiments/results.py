@@ -4,10 +4,12 @@
 
 - ``runs``: one row per run directory: ``run_id, run_dir, dataset, env, kind, algo, seed,
   variant`` and the algorithm settings (``num_critics, confidence_level, pessimism``), then
-  ``status`` (done, partial, diverged: stopped on NaN/inf, or broken: its config.json or log.csv
-  cannot be read, with why in ``config``), ``steps``, ``steps_target``, ``wall_time_s`` (time in
-  training chunks), ``steps_per_s`` (the median of log.csv's per-chunk steps/s: update steps
-  only, no evaluation, no compilation outliers),
+  ``status`` (done, partial, diverged: stopped on NaN/inf, broken: its config.json or log.csv
+  cannot be read, or damaged: its files contradict each other, e.g. a log.csv cut short or
+  deleted, a summary.json it disagrees with, another run's checkpoint; with why in ``config``;
+  ``eabc train --resume`` rebuilds a damaged log from the checkpoint), ``steps``,
+  ``steps_target``, ``wall_time_s`` (time in training chunks), ``steps_per_s`` (the median of
+  log.csv's per-chunk steps/s: update steps only, no evaluation, no compilation outliers),
   ``final_score`` and ``final_return`` (means over the last 10 evaluations),
   ``q_out_of_range_step`` (the first logged step where the critics' mean Q left the range the
   rewards allow, a sign of divergence; empty if it never did or the log predates the check),
@@ -35,14 +37,17 @@ from pathlib import Path
 
 import pandas as pd
 
+from eabc import pytree
 from eabc.agents import ALGORITHMS
 from eabc.data import tasks
-from eabc.training import provenance
-from eabc.training.checkpoint import CONFIG, file_mode
-from eabc.training.logger import LOG
+from eabc.training import identity, provenance
+from eabc.training.checkpoint import CHECKPOINT, CONFIG, CheckpointError, file_mode, load_raw
+from eabc.training.logger import LOG, log_problem
 from eabc.training.trainer import FINAL_EVALUATIONS, SUMMARY
 
 DATABASE = "results.sqlite"
+UNUSABLE = ("broken", "damaged")
+"""Statuses whose numbers are not to be trusted (why is in ``config``); reports leave them out."""
 SETTINGS = tuple(dict.fromkeys(k for a in ALGORITHMS.values() for k in a.report_settings))
 """Algorithm settings kept as columns: what the contracts' ``report_settings`` name."""
 DIAGNOSTICS = ("q_mean", "q_ensemble_std", "policy_q_std", "bc_fraction", "auto_p")
@@ -77,7 +82,8 @@ def _broken_row(run_dir: Path, run_id: str, why: str) -> dict:
 
 def read_run(run_dir: Path, root: Path | None = None) -> tuple[dict, list[dict]]:
     """One run's row and its evaluations, from its directory; status ``broken`` (and why, in
-    ``config``) when its config.json or log.csv cannot be read."""
+    ``config``) when its config.json or log.csv cannot be read, ``damaged`` (and why) when its
+    files contradict each other (:func:`_damage`)."""
     run_id = run_dir.name if root is None else str(run_dir.relative_to(root))
     config = _read_json(run_dir / CONFIG)
     if not isinstance(config.get("train"), dict) or "algo" not in config["train"]:
@@ -92,6 +98,10 @@ def _read_run(run_dir: Path, run_id: str, config: dict) -> tuple[dict, list[dict
     train, agent = config["train"], config.get("agent", {})
     dataset = config.get("dataset", {}).get("name") or train["dataset"]
     task = tasks.parse_task(dataset)
+    # The checkpoint and summary.json before log.csv, which the trainer writes before them: a
+    # run training meanwhile can only have moved its log ahead of them, never behind.
+    stored, problem = _checkpoint_history(run_dir, config)
+    summary = _read_json(run_dir / SUMMARY, {"unreadable": True})
     evaluations, last_row, out_of_range = [], {}, math.nan
     onset = {}  # the last row in range before the first row out of range
     q_max = math.nan  # the largest mean Q any logged chunk reached
@@ -118,8 +128,8 @@ def _read_run(run_dir: Path, run_id: str, config: dict) -> tuple[dict, list[dict
                             "return_std": _num(row.get("return_std")),
                         }
                     )
-    summary = _read_json(run_dir / SUMMARY)
     steps = int(float(last_row["step"])) if last_row else 0
+    problem = problem or _damage(run_dir, summary, evaluations, steps, stored)
     wall = _num(last_row.get("wall_time")) if last_row else math.nan
     last = evaluations[-FINAL_EVALUATIONS:]
     spec = _read_json(run_dir / "sweep.json")  # written by eabc.experiments.sweep
@@ -134,7 +144,7 @@ def _read_run(run_dir: Path, run_id: str, config: dict) -> tuple[dict, list[dict
         "seed": int(train["seed"]),
         "variant": spec.get("variant", ""),
         **{k: agent.get(k) for k in SETTINGS},
-        "status": _status(summary, train),
+        "status": "damaged" if problem else _status(summary, train),
         "steps": steps,
         "steps_target": int(train["steps"]),
         "wall_time_s": wall,
@@ -148,9 +158,55 @@ def _read_run(run_dir: Path, run_id: str, config: dict) -> tuple[dict, list[dict
         **{f"{k}_onset": _num(onset.get(k)) for k in ONSET},
         "machine": provenance.machine_text(segments),  # "" for runs trained before the record
         "code": provenance.code_text(segments),
-        "config": json.dumps(config),
+        "config": problem or json.dumps(config),
     }
     return row, [{"run_id": run_id, **e} for e in evaluations]
+
+
+def _checkpoint_history(run_dir: Path, config: dict) -> tuple[tuple | None, str | None]:
+    """``(step, evaluations)`` of the run's checkpoint (None without one) and why it cannot be
+    this run's (unreadable, or another run's by its recorded identity), else None."""
+    if not (run_dir / CHECKPOINT).exists():
+        return None, None
+    try:
+        raw = identity.checked(load_raw(run_dir), run_dir, config, warn=False)
+        step = int(pytree.find(raw["agent"], "step"))
+    except (CheckpointError, OSError, KeyError, TypeError, ValueError) as error:
+        return None, str(error)
+    return (step, raw.get("evaluations") or {}), None
+
+
+def _damage(run_dir: Path, summary: dict, evaluations: list[dict], logged: int, stored) -> str:
+    """Why the run's files contradict each other, or "" when they agree: log.csv against the
+    checkpoint's evaluation history (:func:`~eabc.training.logger.log_problem`) and against
+    summary.json (its steps, its number of evaluations and its final return)."""
+    problem = ""
+    if stored is not None:
+        step, history = stored
+        problem = log_problem(run_dir / LOG, history, step) or ""
+    if problem or not summary:
+        pass  # a checkpoint's history is the stronger evidence; no summary, nothing to compare
+    elif summary.get("unreadable"):
+        problem = f"{run_dir / SUMMARY} cannot be read"
+    elif not (run_dir / LOG).exists():
+        problem = f"{run_dir / LOG} is missing but {SUMMARY} says the run trained"
+    else:
+        done = int(summary.get("steps", 0))
+        scored = [e for e in evaluations if e["step"] <= done]
+        final = _mean([e["return_mean"] for e in scored[-FINAL_EVALUATIONS:]])
+        recorded = summary.get("final_return")
+        if logged < done:
+            problem = f"{run_dir / LOG} ends at step {logged} but {SUMMARY} says {done}"
+        elif len(scored) != summary.get("evaluations", len(scored)):
+            problem = (
+                f"{run_dir / LOG} holds {len(scored)} evaluations up to step {done} but "
+                f"{SUMMARY} says {summary['evaluations']}"
+            )
+        elif recorded is not None and not math.isclose(final, recorded, rel_tol=1e-9):
+            problem = f"{run_dir / LOG}'s final return {final!r} is not {SUMMARY}'s {recorded!r}"
+    if problem and stored is not None:
+        problem += f"; `eabc train --resume {run_dir}` rebuilds it from the checkpoint"
+    return problem
 
 
 def _status(summary: dict, train: dict) -> str:
@@ -243,13 +299,13 @@ def read_archive(path: str | Path) -> tuple[pd.DataFrame, pd.DataFrame]:
     is what survives. Reading it back lets a later machine's report stand on every run measured
     so far, not only on the run directories still on disk (:func:`merge`). Another root on the
     same machine (a second core's sweep of other runs) is read from its run directories, its
-    broken runs left out. Each row's ``source`` says where it came from."""
+    broken and damaged runs left out. Each row's ``source`` says where it came from."""
     path = Path(path)
     missing = [name for name in ARCHIVE_FILES if not (path / name).is_file()]
     # A sweep root: run directories, or its runs/ folder before the first run writes one.
     if missing and path.is_dir() and ((path / "runs").is_dir() or run_dirs(path)):
         runs, evals = collect(path, write=False)
-        runs = runs[runs["status"] != "broken"].assign(source=str(path), archived=False)
+        runs = runs[~runs["status"].isin(UNUSABLE)].assign(source=str(path), archived=False)
         return runs.reindex(columns=[*_RUN_COLUMNS, "source", "archived"]), evals
     if missing:
         raise FileNotFoundError(

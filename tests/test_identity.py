@@ -1,0 +1,266 @@
+"""A run's files belong together and are never thrown away unasked.
+
+Every checkpoint records which run wrote it (run id, algorithm, seed, settings hash, dataset and
+its fingerprint); resume, evaluate, ``load_policy``, the ONNX export and ``eabc results`` refuse
+another run's checkpoint or config.json even when every shape matches. A finished run whose
+checkpoint was deleted is refused rather than trained again from step 0 (``--restart`` asks for
+that); a log.csv cut short or deleted is reported as damaged and rebuilt from the checkpoint's
+evaluation history; inputs that would fail after training (equal reference scores, a cache
+directory that is a file) are refused before any work. Runs are tiny: TD3+BC with 32-unit
+networks, 300 steps, one evaluation episode.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import re
+import shutil
+
+import pytest
+
+from eabc import load_policy
+from eabc.cli import main
+from eabc.data.dataset import DatasetError
+from eabc.data.loaders import save_npz
+from eabc.deploy import export_onnx
+from eabc.experiments import results, sweep
+from eabc.experiments.spec import expand
+from eabc.training import checkpoint, trainer
+from eabc.training.checkpoint import CheckpointError
+from eabc.training.run import ProgressLostError
+from eabc.training.trainer import TrainConfig
+
+SMALL = dict(
+    dataset="pendulum-swingup",
+    algo="td3bc",
+    steps=300,
+    log_interval=100,
+    eval_interval=100,
+    checkpoint_interval=100,
+    eval_episodes=1,
+    env="Pendulum-v1",
+)
+AGENT = {"hidden_dims": (32, 32)}
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory, pendulum_dataset):
+    """A finished run (seed 0, its data in a file) and two runs of its setting that saved their initial state as a
+    checkpoint: seed 1, and seed 0 on other data of the same shapes (rewards + 1)."""
+    root = tmp_path_factory.mktemp("finished")
+    save_npz(pendulum_dataset, root / "pendulum.npz")  # a file the CLI can load
+    config = TrainConfig(**{**SMALL, "dataset": str(root / "pendulum.npz")})
+    trainer.train(trainer.start(config, root / "seed0", AGENT, pendulum_dataset), progress=False)
+    other = dataclasses.replace(pendulum_dataset, rewards=pendulum_dataset.rewards + 1.0)
+    for name, seed, data in [("seed1", 1, pendulum_dataset), ("other", 0, other)]:
+        run = trainer.start(dataclasses.replace(config, seed=seed), root / name, AGENT, data)
+        run.lock.release()
+        checkpoint.save(run.run_dir, run.state, run.algorithm.state_layout, run.identity)
+    return root
+
+
+def copy(finished, tmp_path, name="seed0"):
+    shutil.copytree(finished / name, tmp_path / "run")
+    return tmp_path / "run"
+
+
+def config_of(run_dir) -> dict:
+    return json.loads((run_dir / checkpoint.CONFIG).read_text())
+
+
+def test_another_runs_checkpoint_is_refused_by_every_reader(
+    finished, tmp_path, pendulum_dataset, capsys
+):
+    run_dir = copy(finished, tmp_path)
+    mine, theirs = config_of(run_dir)["run_id"], config_of(finished / "seed1")["run_id"]
+    assert mine and theirs and mine != theirs
+    shutil.copy(finished / "seed1" / checkpoint.CHECKPOINT, run_dir)
+    message = (
+        rf"run/checkpoint.msgpack belongs to run {theirs} \(td3bc, seed 1, pendulum-swingup.*\) "
+        rf"but .*run/config.json is run {mine} \(td3bc, seed 0, .*differ in run_id, seed\)"
+    )
+    with pytest.raises(CheckpointError, match=message):
+        trainer.resume(run_dir, pendulum_dataset)  # eabc train --resume
+    with pytest.raises(CheckpointError, match=message):
+        trainer.resume(run_dir, pendulum_dataset, lock=False)  # eabc evaluate
+    with pytest.raises(CheckpointError, match=message):
+        load_policy(run_dir)
+    with pytest.raises(CheckpointError, match=message):
+        export_onnx(run_dir, tmp_path / "policy.onnx")
+    assert not (tmp_path / "policy.onnx").exists()
+    row, _ = results.read_run(run_dir)
+    assert row["status"] == "damaged" and f"belongs to run {theirs}" in row["config"]
+    with pytest.raises(SystemExit, match=f"error: .*belongs to run {theirs}"):
+        main(["export-policy", str(run_dir), "--onnx", str(tmp_path / "policy.onnx")])
+
+    # Data of the same shapes but other content: the fingerprint tells them apart.
+    shutil.copy(finished / "other" / checkpoint.CHECKPOINT, run_dir)
+    with pytest.raises(CheckpointError, match="differ in run_id, fingerprint\\)"):
+        load_policy(run_dir)
+
+    # Another run's config.json beside this checkpoint does not resume as the other seed.
+    shutil.copy(finished / "seed0" / checkpoint.CHECKPOINT, run_dir)
+    shutil.copy(finished / "seed1" / checkpoint.CONFIG, run_dir)
+    with pytest.raises(CheckpointError, match=f"belongs to run {mine} .* is run {theirs}"):
+        trainer.resume(run_dir, pendulum_dataset)
+
+
+def test_checkpoints_from_before_the_identity_load_with_a_warning(
+    finished, tmp_path, pendulum_dataset, capsys
+):
+    """A checkpoint without an identity and a config.json without a run id (an older eabc's):
+    read with a one-line warning; resumed for training, the run gets an id from then on."""
+    run_dir = copy(finished, tmp_path)
+    raw = checkpoint.load_raw(run_dir)
+    assert raw[checkpoint.IDENTITY]["run_id"] == config_of(run_dir)["run_id"]
+    old = {k: v for k, v in raw.items() if k != checkpoint.IDENTITY}
+    checkpoint.save(run_dir, old)
+    config = config_of(run_dir)
+    del config["run_id"]
+    checkpoint.save_json(run_dir / checkpoint.CONFIG, config)
+    capsys.readouterr()
+
+    assert trainer.resume(run_dir, pendulum_dataset, lock=False).step == 300
+    load_policy(run_dir)
+    warnings = capsys.readouterr().err.strip().splitlines()
+    assert len(warnings) == 2 and all("does not record which run wrote it" in w for w in warnings)
+    assert results.read_run(run_dir)[0]["status"] == "done"
+
+    run = trainer.resume(run_dir, pendulum_dataset)  # for training: the run gets an id
+    run.lock.release()
+    assert config_of(run_dir)["run_id"] == run.identity["run_id"]
+
+
+def test_a_finished_run_without_its_checkpoint_is_refused_not_retrained(
+    finished, tmp_path, pendulum_dataset
+):
+    run_dir = copy(finished, tmp_path)
+    (run_dir / checkpoint.CHECKPOINT).unlink()  # to save disk
+    kept = {name: (run_dir / name).read_bytes() for name in ("log.csv", "summary.json")}
+    with pytest.raises(SystemExit) as exit:
+        main(["train", "--resume", str(run_dir), "--no-progress"])
+    assert "run is finished (300 of 300 steps; summary.json)" in exit.value.code
+    assert "--restart" in exit.value.code and "\n" not in exit.value.code
+    assert {name: (run_dir / name).read_bytes() for name in kept} == kept
+    with pytest.raises(SystemExit, match="run is finished.*nothing to read"):
+        main(["evaluate", str(run_dir)])
+
+    # Its log alone shows it finished; a log past the first checkpoint shows progress.
+    (run_dir / "summary.json").unlink()
+    with pytest.raises(ProgressLostError, match="finished \\(log.csv reaches step 300 of 300\\)"):
+        trainer.resume(run_dir, pendulum_dataset)
+    lines = kept["log.csv"].decode().splitlines(keepends=True)
+    (run_dir / "log.csv").write_text("".join(lines[:3]))  # rows at steps 100 and 200
+    with pytest.raises(
+        ProgressLostError, match="trained to step 200 \\(log.csv\\), past its first"
+    ):
+        trainer.resume(run_dir, pendulum_dataset)
+    (run_dir / "log.csv").write_text("".join(lines[:2]))  # killed before its first checkpoint
+    trainer.resume(run_dir, pendulum_dataset).lock.release()
+    assert not (run_dir / "log.csv").exists()  # started again, as before
+
+    # --restart asks for it, and only where the checkpoint is missing.
+    shutil.rmtree(run_dir)
+    run_dir = copy(finished, tmp_path)
+    with pytest.raises(SystemExit, match="--restart trains a run again only when its checkpoint"):
+        main(["train", "--resume", str(run_dir), "--restart", "--no-progress"])
+    (run_dir / checkpoint.CHECKPOINT).unlink()
+    run = trainer.resume(run_dir, pendulum_dataset, restart=True)
+    assert run.step == 0 and not (run_dir / "summary.json").exists()
+    run.lock.release()
+
+
+def test_a_sweep_does_not_start_again_a_run_whose_checkpoint_is_gone(tmp_path, pendulum_dataset):
+    save_npz(pendulum_dataset, tmp_path / "pend.npz")
+    train = {k: v for k, v in SMALL.items() if k not in ("dataset", "algo", "steps")}
+    spec = {"datasets": [str(tmp_path / "pend.npz")], "algos": ["td3bc"], "steps": 200,
+            "grid": {"hidden_dims": [[32, 32]]}, "train": train}  # fmt: skip
+    (run,) = expand(spec)
+    sweep.execute([run.to_json()], str(tmp_path / "sweep"))
+    run_dir = tmp_path / "sweep" / "runs" / run.run_id
+    (run_dir / checkpoint.CHECKPOINT).unlink()
+    (longer,) = expand({**spec, "steps": 300})  # an extension needs the checkpoint
+    state, _, why = sweep._status(longer, tmp_path / "sweep")
+    assert state == "broken" and "is finished (200 of 300 steps" in why
+
+
+def test_damaged_logs_are_reported_and_rebuilt_from_the_checkpoint(
+    finished, tmp_path, pendulum_dataset, capsys
+):
+    run_dir = copy(finished, tmp_path)
+    good = (run_dir / "log.csv").read_bytes()
+    summary = json.loads((run_dir / "summary.json").read_text())
+    lines = good.decode().splitlines(keepends=True)
+    header = lines[0].rstrip().split(",")
+    edited = lines[2].rstrip().split(",")  # step 200, an evaluation
+    edited[header.index("return_mean")] = "1.5"
+    cases = [
+        ("deleted", None, "run/log.csv is missing"),
+        ("cut short", "".join(lines[:3]), "ends at step 200, before the checkpoint's step 300"),
+        ("cut mid-line", good.decode()[:-20], "cut short \\(its last line is incomplete\\)"),
+        (
+            "edited",
+            "".join([*lines[:2], ",".join(edited) + "\r\n", *lines[3:]]),
+            "has an evaluation at step 200 that the checkpoint does not hold",
+        ),
+    ]
+    for name, text, why in cases:
+        (run_dir / "log.csv").unlink(missing_ok=True)
+        if text is not None:
+            (run_dir / "log.csv").write_bytes(text.encode())
+        row, _ = results.read_run(run_dir)
+        assert row["status"] == "damaged", name
+        assert re.search(why, row["config"]), (name, row["config"])
+        assert "`eabc train --resume" in row["config"]
+
+    # The last case's resume: the log is rebuilt from the checkpoint, the summary agrees again.
+    (run_dir / "log.csv").unlink()
+    trainer.train(trainer.resume(run_dir, pendulum_dataset), progress=False)
+    assert (
+        "run/log.csv is missing: rebuilt its evaluations up to step 300" in capsys.readouterr().err
+    )
+    row, evaluations = results.read_run(run_dir)
+    assert row["status"] == "done" and row["final_return"] == summary["final_return"]
+    assert [e["step"] for e in evaluations] == [100, 200, 300]
+
+    # summary.json contradicting the log (replaced, or its return edited) is damage too.
+    (run_dir / "summary.json").write_text(json.dumps({**summary, "final_return": 1.0}))
+    row, _ = results.read_run(run_dir)
+    assert row["status"] == "damaged" and "is not summary.json's 1.0" in row["config"]
+    (run_dir / "summary.json").write_text("{")
+    assert "summary.json cannot be read" in results.read_run(run_dir)[0]["config"]
+
+
+def test_temporary_files_of_a_killed_writer_are_removed_by_the_next(
+    finished, tmp_path, pendulum_dataset
+):
+    run_dir = copy(finished, tmp_path)
+    for name in (".log.csv.x1y2.tmp", ".checkpoint.msgpack.a9b8.tmp"):
+        (run_dir / name).write_bytes(b"half")
+    trainer.resume(run_dir, pendulum_dataset, lock=False)  # a reader leaves them
+    assert len(list(run_dir.glob(".*.tmp"))) == 2
+    trainer.resume(run_dir, pendulum_dataset).lock.release()
+    assert not list(run_dir.glob(".*.tmp"))
+
+
+def test_inputs_that_fail_after_training_are_refused_before_it(
+    tmp_path, pendulum_dataset, monkeypatch
+):
+    for low, high in [(-130.0, -130.0), (float("nan"), -130.0)]:
+        data = dataclasses.replace(pendulum_dataset, ref_min_score=low, ref_max_score=high)
+        with pytest.raises(
+            DatasetError, match="pendulum-swingup: its reference scores .*undefined"
+        ):
+            trainer.start(TrainConfig(**SMALL), tmp_path / "same", AGENT, dataset=data)
+        assert not (tmp_path / "same").exists(), "nothing made: a fixed file can start afresh"
+
+    (tmp_path / "afile").write_text("")
+    for cache in ("afile", "afile/sub"):
+        with pytest.raises(ValueError, match=f"cache_dir .*{cache} is not a directory"):
+            TrainConfig(**SMALL, cache_dir=str(tmp_path / cache))
+    with pytest.raises(SystemExit, match="error: --cache-dir .*afile is not a directory"):
+        main(["train", "--cache-dir", str(tmp_path / "afile"), "--run-dir", str(tmp_path / "r")])
+    monkeypatch.setenv("EABC_CACHE_DIR", str(tmp_path / "afile"))
+    with pytest.raises(ValueError, match=r"\$EABC_CACHE_DIR .*afile is not a directory"):
+        trainer.start(TrainConfig(**SMALL), tmp_path / "env", AGENT, dataset=pendulum_dataset)
