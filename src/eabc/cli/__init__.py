@@ -34,7 +34,7 @@ from eabc.cli.experiments import (
     run_sweep,
     sweep_spec,
 )
-from eabc.cli.options import _checked, parse_settings
+from eabc.cli.options import _checked, check_flags, parse_settings
 from eabc.cli.train import (
     Evaluate,
     ExportPolicy,
@@ -126,6 +126,7 @@ def parse(argv: list[str]):
     if isinstance(cmd, Train | Sac):  # checked here, so that errors name the flags
         config_class = TrainConfig if isinstance(cmd, Train) else SACTrainConfig
         cmd = dataclasses.replace(cmd, config=_checked(cmd.config, config_class))
+    check_flags(cmd)  # the other numbers: ranges declared on the command's fields
     return cmd
 
 

@@ -9,15 +9,17 @@ from typing import Annotated
 
 import tyro
 
+from eabc.ranges import Finite, Positive, Seed
+
 
 @dataclasses.dataclass(frozen=True)
 class DataMake:
     """Make a built-in D4RL-style dataset (e.g. hopper-random) in the cache directory."""
 
     name: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="NAME")]
-    seed: int = 0
+    seed: Seed = 0
     """Seed of the environment and the actions; the same seed gives the same file."""
-    size: int | None = None
+    size: Positive | None = None
     """Transitions (default D4RL's size)."""
     cache_dir: str | None = None
     """Cache directory (default $EABC_CACHE_DIR or ~/.cache/eabc)."""
@@ -53,11 +55,11 @@ class ZooBuild:
     """hopper, halfcheetah or walker2d."""
     root: str | None = None
     """Zoo directory (default: the package's, or $EABC_ZOO_DIR)."""
-    episodes: int = 10
+    episodes: Positive = 10
     """Episodes per measured snapshot (sampled actions, as the datasets are made)."""
-    expert_candidates: int = 5
+    expert_candidates: Positive = 5
     """The expert is the best of this many last snapshots."""
-    medium_return: float | None = None
+    medium_return: Finite | None = None
     """Return the medium policy aims at (default: D4RL's medium level)."""
     rechoose_medium: bool = False
     """Search for the medium policy again even if the zoo already has one."""

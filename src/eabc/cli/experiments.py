@@ -12,6 +12,7 @@ import tyro
 
 from eabc.cli.options import parse_value
 from eabc.experiments.presets import PRESETS as _SWEEP_PRESETS
+from eabc.ranges import NonNegativeNumber, Positive, PositiveNumber, Seed
 
 SWEEP_PRESETS = tuple(_SWEEP_PRESETS)
 """The names of ``eabc.experiments.presets.PRESETS``, the choices of ``eabc sweep --preset``."""
@@ -38,9 +39,9 @@ class Sweep:
     """Datasets (replace the spec's or preset's, and narrow its variants' own lists)."""
     algos: tuple[str, ...] = ()
     """Algorithms (replace the spec's or preset's; of its variants, those of these algorithms)."""
-    seeds: tuple[int, ...] = ()
+    seeds: tuple[Seed, ...] = ()
     """Seeds (replace the spec's or preset's)."""
-    steps: int | None = None
+    steps: Positive | None = None
     """Gradient steps per run (default the spec's, else 1M), e.g. to shorten a preset."""
     grid: tuple[str, ...] = ()
     """Extra grid axes as KEY=V1,V2 (e.g. num_critics=5,10 pessimism=min,mean-std); put
@@ -49,14 +50,14 @@ class Sweep:
     """local: a process pool on this machine; ray: one Ray task per job."""
     ray_address: str = "auto"
     """Ray cluster address (auto: the running cluster, or HOST:PORT)."""
-    workers: int | None = None
+    workers: Positive | None = None
     """Local processes at once (default: one per CPU core)."""
     layout: Literal["auto", "vmap", "processes"] = "auto"
     """vmap: a seed group trains in one process, vectorised (GPU); processes: one single-threaded
     process per run (CPU); auto: vmap on an accelerator, processes on a CPU."""
-    cpus_per_job: float = 1.0
+    cpus_per_job: PositiveNumber = 1.0
     """Ray: CPUs declared per job."""
-    gpus_per_job: float = 0.0
+    gpus_per_job: NonNegativeNumber = 0.0
     """Ray: GPUs declared per job (e.g. 0.25 to pack four jobs per GPU)."""
     dry_run: bool = False
     """List the runs, their state and the estimated cost, then stop."""
@@ -70,15 +71,15 @@ class Sweep:
     """Start only the runs whose estimate (as --dry-run shows it) ends within this time from now,
     e.g. 150m or 2.5h; the others wait for a later sweep. For machines that are not kept: a run
     begun and not finished when the machine goes is lost. Local backend only."""
-    eval_interval: int | None = None
+    eval_interval: Positive | None = None
     """Evaluate every this many steps (default the spec's, else 5000)."""
-    eval_episodes: int | None = None
+    eval_episodes: Positive | None = None
     """Episodes per evaluation (default the spec's, else 10)."""
-    log_interval: int | None = None
+    log_interval: Positive | None = None
     """Steps per compiled chunk and log row (default the spec's, else 1000)."""
-    checkpoint_interval: int | None = None
+    checkpoint_interval: Positive | None = None
     """Checkpoint every this many steps (default the spec's, else 5000)."""
-    batch_size: int | None = None
+    batch_size: Positive | None = None
     """Mini-batch size (default the spec's, else 256)."""
 
 

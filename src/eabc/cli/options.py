@@ -13,6 +13,7 @@ from typing import Annotated
 
 import tyro
 
+from eabc import ranges
 from eabc.training.online import SACTrainConfig
 from eabc.training.trainer import TrainConfig
 
@@ -40,6 +41,17 @@ def _checked(options, config_class: type):
         for name in values:
             message = re.sub(rf"\b{name}\b", "--" + name.replace("_", "-"), message)
         raise ValueError(message) from None
+
+
+def check_flags(cmd) -> None:
+    """Every flag of ``cmd`` whose type carries a range (:mod:`eabc.ranges`: ``Positive``,
+    ``Seed``, ...) within it; ``ValueError`` naming the flag (``--episodes must be an integer >= 1,
+    got 0``). The train options are the config's own checks (:func:`_checked`)."""
+    hints = typing.get_type_hints(type(cmd), include_extras=True)
+    for field in dataclasses.fields(cmd):
+        if ranges.constrained(hints[field.name]):
+            flag = "--" + field.name.replace("_", "-")
+            ranges.check(getattr(cmd, field.name), hints[field.name], flag)
 
 
 TrainOptions = _parsed_unchecked(TrainConfig)

@@ -11,6 +11,7 @@ from typing import Annotated
 import tyro
 
 from eabc.cli.options import AgentOverrides, SACTrainOptions, TrainOptions, parse_settings
+from eabc.ranges import Positive, PositiveNumber, Seed
 
 
 @dataclasses.dataclass(frozen=True)
@@ -44,9 +45,9 @@ class Evaluate:
     """Re-score a run's latest checkpoint in its evaluation environment."""
 
     run_dir: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="RUN_DIR")]
-    episodes: int = 10
+    episodes: Positive = 10
     """Episodes to run."""
-    seed: int | None = None
+    seed: Seed | None = None
     """Environment seed (default: the run's seed + 100, as in training)."""
 
 
@@ -64,10 +65,10 @@ class Sac:
     """Where the run goes (default runs/sac_ENV_seedS)."""
     resume: str | None = None
     """Continue the run in this directory from its last checkpoint (other options are ignored)."""
-    alpha: float | None = None
+    alpha: PositiveNumber | None = None
     """Fixed entropy temperature instead of automatic tuning (default: tuning toward -dim(A);
     walker2d: fixed 0.2, see README)."""
-    lr: float | None = None
+    lr: PositiveNumber | None = None
     """Adam learning rate of actor and critics (default 3e-4; walker2d 1e-3)."""
     progress: bool = True
     """Show a progress bar."""

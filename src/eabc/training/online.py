@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from eabc import networks, pytree
+from eabc import networks, pytree, ranges
 from eabc.agents import sac
 from eabc.agents.common import Batch
 from eabc.data import tasks
@@ -75,6 +75,13 @@ class SACTrainConfig:
     gradient steps on the first ``update_after`` new transitions alone undo a trained policy."""
 
     def __post_init__(self):
+        positive = ("steps", "update_every", "batch_size", "eval_interval", "eval_episodes",
+                    "snapshot_interval", "checkpoint_interval")  # fmt: skip
+        for name in positive:
+            ranges.check(getattr(self, name), ranges.Positive, name)
+        for name in ("start_steps", "update_after", "refill_steps"):
+            ranges.check(getattr(self, name), ranges.NonNegative, name)
+        ranges.check(self.seed, ranges.Seed, "seed")
         for name in ("eval_interval", "snapshot_interval", "checkpoint_interval"):
             if getattr(self, name) % self.update_every:
                 raise ValueError(f"{name} must be a multiple of update_every={self.update_every}")

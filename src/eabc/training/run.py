@@ -27,7 +27,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from eabc import pytree
+from eabc import pytree, ranges
 from eabc.agents import Algorithm, get_algorithm, validation
 from eabc.data.dataset import Dataset, DatasetError, Normalizer
 from eabc.data.sources import load_dataset
@@ -74,9 +74,12 @@ class TrainConfig:
     def __post_init__(self):
         if self.batch_size is None:  # set here, so config.json records the size trained with
             object.__setattr__(self, "batch_size", get_algorithm(self.algo).batch_size)
-        for name in ("steps", "batch_size", "eval_interval", "eval_episodes", "log_interval"):
+        positive = ("steps", "batch_size", "eval_interval", "eval_episodes", "log_interval",
+                    "checkpoint_interval")  # fmt: skip
+        for name in positive:
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        ranges.check(self.seed, ranges.Seed, "seed")
         for name in ("eval_interval", "checkpoint_interval"):
             value = getattr(self, name)
             if value % self.log_interval:
