@@ -2,8 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import io
 import json
+import os
+import threading
+import time
+import zipfile
 
 import h5py
 import minari
@@ -261,3 +267,120 @@ def test_a_dataset_made_with_minaris_data_collector_trains(tmp_path, monkeypatch
     assert summary["steps"] == 100 and summary["evaluations"] == 1
     config = json.loads((run_dir / "config.json").read_text())
     assert config["dataset"]["size"] == 300 and config["dataset"]["env_id"] == "Pendulum-v1"
+
+
+def _npy(shape, dtype="<f4", data=b"\0" * 64) -> bytes:
+    """A .npy file's bytes: a header claiming ``shape`` of ``dtype``, then ``data``."""
+    buffer = io.BytesIO()
+    np.lib.format.write_array_header_1_0(
+        buffer, {"descr": dtype, "fortran_order": False, "shape": shape}
+    )
+    return buffer.getvalue() + data
+
+
+def _write_npz(path, **members):
+    """An .npz whose members are arrays (saved as np.save does) or raw bytes, as given."""
+    with zipfile.ZipFile(path, "w") as archive:
+        for key, value in members.items():
+            if not isinstance(value, bytes):
+                buffer = io.BytesIO()
+                np.save(buffer, value, allow_pickle=True)
+                value = buffer.getvalue()
+            archive.writestr(f"{key}.npy", value)
+
+
+N_ROWS = 20
+GOOD = dict(
+    observations=np.zeros((N_ROWS, 3), np.float32),
+    actions=np.zeros((N_ROWS, 2), np.float32),
+    rewards=np.zeros(N_ROWS, np.float32),
+    terminals=np.zeros(N_ROWS, bool),
+)
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        # 2 KB whose header claims 68 TB: refused before anything is allocated
+        (dict(observations=_npy((10**12, 17))), r"observations claims shape \(1000000000000, 17\) of float32 \(68.0 TB\) but the file holds at most 64 bytes"),
+        (dict(actions=_npy((N_ROWS, 2), data=b"\0" * 10)), "actions claims shape .* the file is truncated"),
+        (dict(rewards=b"not an array at all"), "member rewards.npy is not a readable .npy array"),
+        (dict(rewards=np.zeros(N_ROWS, [("a", "<f4"), ("b", "<i4")])), "rewards holds records"),
+        (dict(observations=np.zeros((N_ROWS, 3), complex)), "observations holds complex numbers"),
+        (dict(rewards=np.array([None] * N_ROWS, object)), "rewards holds objects"),
+        (dict(actions=np.array([["a", "b"]] * N_ROWS)), "actions holds text"),
+        (dict(rewards=np.array(1.0)), "rewards is a single value, not an array"),
+        (dict(observations=np.zeros((N_ROWS, 3, 2))), r"observations has shape \(20, 3, 2\); it must be \[N\] or \[N, dim\]"),
+        (dict(terminals=np.zeros((N_ROWS, 2))), r"terminals has shape \(20, 2\); it must be \[N\] or \[N, 1\]"),
+        (dict(ref_min_score=np.array("abc")), "ref_min_score must be a single value .a number."),
+        (dict(metadata=np.array("{not json")), "attribute metadata must be a JSON object"),
+        (dict(ref_max_score=np.array(np.inf)), "attribute ref_max_score is inf"),
+    ],
+)  # fmt: skip
+def test_a_malformed_npz_is_refused_from_its_headers_in_one_line(tmp_path, change, message):
+    path = tmp_path / "bad.npz"
+    _write_npz(path, **{**GOOD, **change})
+    with pytest.raises(DatasetError, match=message) as error:
+        load_dataset(path)
+    assert str(error.value).startswith(f"{path}: ") and "\n" not in str(error.value)
+
+
+def test_an_npy_renamed_npz_and_a_lying_zip_directory_are_refused(tmp_path):
+    np.save(tmp_path / "one.npy", np.zeros((5, 3)))
+    (tmp_path / "one.npy").rename(tmp_path / "one.npz")
+    with pytest.raises(DatasetError, match="one.npz: a single .npy array named .npz"):
+        load_dataset(tmp_path / "one.npz")
+    # The zip directory claims observations.npy is 68 TB uncompressed; the file is 2 KB.
+    _write_npz(tmp_path / "lies.npz", **{**GOOD, "observations": _npy((10**12, 17))})
+    data = bytearray((tmp_path / "lies.npz").read_bytes())
+    entry = data.index(b"PK\x01\x02")  # the first central directory entry: observations.npy
+    data[entry + 24 : entry + 28] = (2**32 - 1).to_bytes(4, "little")  # uncompressed size
+    (tmp_path / "lies.npz").write_bytes(bytes(data))
+    with pytest.raises(DatasetError, match="the file holds at most"):
+        load_dataset(tmp_path / "lies.npz")
+    # Members a dataset does not use are not read, whatever they are.
+    _write_npz(tmp_path / "extra.npz", **GOOD, notes=b"free text")
+    assert load_dataset(tmp_path / "extra.npz").size == N_ROWS - 1
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no FIFOs on this OS")
+def test_a_fifo_or_a_device_named_like_a_dataset_is_refused_without_blocking(tmp_path):
+    fifo = tmp_path / "x.npz"
+    os.mkfifo(fifo)
+
+    def unblock():  # were the loader to open the FIFO, this ends its wait (and the test fails)
+        time.sleep(5)
+        with contextlib.suppress(OSError):
+            os.close(os.open(fifo, os.O_WRONLY | os.O_NONBLOCK))
+
+    threading.Thread(target=unblock, daemon=True).start()
+    with pytest.raises(DatasetError, match=r"x.npz is a FIFO, not a regular file"):
+        load_dataset(fifo)
+    with pytest.raises(DatasetError, match=r"/dev/null is a device, not a regular file"):
+        load_file("/dev/null")
+
+
+@pytest.mark.parametrize(
+    "key, value, message",
+    [
+        ("observations", np.zeros((N_ROWS, 3, 2)), r"observations has shape \(20, 3, 2\)"),
+        ("rewards", np.array(["x"] * N_ROWS, dtype=object), "rewards holds text"),
+        ("actions", np.zeros((N_ROWS, 2), complex), "actions holds complex numbers"),
+        ("rewards", np.float32(1.0), "rewards is a single value"),
+        ("observations", ((10**12, 17), "f4"), r"claims shape \(1000000000000, 17\) of float32 .* at most 0 bytes"),
+    ],
+)  # fmt: skip
+def test_hdf5_datasets_of_the_wrong_rank_or_dtype_are_refused(tmp_path, key, value, message):
+    path = tmp_path / "bad.hdf5"
+    with h5py.File(path, "w") as f:
+        for name, array in {**GOOD, key: value}.items():
+            if isinstance(array, tuple):  # declared, never written: no storage behind it
+                f.create_dataset(name, shape=array[0], dtype=array[1])
+            elif array.dtype == object:
+                f.create_dataset(name, data=list(array), dtype=h5py.string_dtype())
+            else:
+                f[name] = array
+        f.attrs["ref_min_score"] = 0.0
+    with pytest.raises(DatasetError, match=message) as error:
+        load_dataset(path)
+    assert str(error.value).startswith(f"{path}: ") and "\n" not in str(error.value)

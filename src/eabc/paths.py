@@ -11,3 +11,15 @@ def cache_dir(override: str | os.PathLike | None = None) -> Path:
     else ``~/.cache/eabc``."""
     root = override or os.environ.get("EABC_CACHE_DIR") or Path.home() / ".cache" / "eabc"
     return Path(root).expanduser()
+
+
+def expand(path: str | os.PathLike) -> Path:
+    """``path`` with a leading ``~`` or ``~user`` expanded; ``ValueError`` naming it where there
+    is no such user or home (``Path.expanduser`` raises ``RuntimeError`` there, read as a crash)."""
+    try:
+        return Path(path).expanduser()
+    except RuntimeError:
+        head = str(path).split(os.sep, 1)[0]
+        raise ValueError(
+            f"{path}: cannot expand {head} (no such user or home directory); give the full path"
+        ) from None

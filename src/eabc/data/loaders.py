@@ -9,37 +9,65 @@ import json
 import os
 import warnings
 import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
 
-from eabc.data import tasks
+from eabc import paths
+from eabc.data import schema, tasks
 from eabc.data.dataset import Dataset, DatasetError
 
 REQUIRED = ("observations", "actions", "rewards", "terminals")
 
 
 def load_file(path: str | os.PathLike) -> Dataset:
-    path = Path(path).expanduser()
-    if not path.exists():
-        raise DatasetError(f"dataset file {path} does not exist; check the path")
-    if path.is_dir():
-        raise DatasetError(f"{path} is a directory, not a dataset file; give the file's path")
+    """A dataset from a ``.npz`` or D4RL-layout HDF5 file, checked against
+    :mod:`eabc.data.schema` before any array is read."""
+    path = paths.expand(path)
+    schema.regular_file(path)  # before anything opens it: a FIFO would block forever
     if path.suffix == ".npz":
-        try:
-            with np.load(path, allow_pickle=False) as data:
-                arrays = {key: data[key] for key in data.files}
-        except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as error:
-            raise DatasetError(
-                f"{path}: not a readable .npz archive ({type(error).__name__}: {error}); the file "
-                "is truncated or corrupt: make or copy it again"
-            ) from None
-        attrs = {k: arrays.pop(k).item() for k in list(arrays) if arrays[k].ndim == 0}
+        arrays, attrs = _read_npz(path)
     elif path.suffix in (".hdf5", ".h5"):
         arrays, attrs = _read_hdf5(path)
     else:
         raise DatasetError(f"{path}: unsupported file type {path.suffix!r}; use .hdf5, .h5 or .npz")
-    return from_arrays(arrays, attrs, default_name=path.stem)
+    try:
+        return from_arrays(arrays, attrs, default_name=path.stem)
+    except DatasetError as error:  # the values' checks name the dataset: name the file too
+        raise DatasetError(f"{path}: {error}" if str(path) not in str(error) else error) from None
+
+
+_UNREADABLE = (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError, RuntimeError,
+               NotImplementedError, zlib.error)  # fmt: skip
+"""What reading a damaged archive raises (zipfile, zlib and numpy's .npy reader)."""
+
+
+def _read_npz(path: Path) -> tuple[dict[str, np.ndarray], dict]:
+    with open(path, "rb") as f:
+        if f.read(6) == b"\x93NUMPY":
+            raise DatasetError(
+                f"{path}: a single .npy array named .npz; a dataset .npz holds named arrays: "
+                "numpy.savez(path, observations=..., actions=..., rewards=..., terminals=...)"
+            )
+    try:
+        with zipfile.ZipFile(path) as archive:
+            headers = schema.npz_headers(path, archive)
+            schema.check(path, headers)
+            values = {}
+            for key, header in headers.items():
+                with archive.open(header.where) as member:
+                    values[key] = np.lib.format.read_array(member, allow_pickle=False)
+    except DatasetError:
+        raise
+    except _UNREADABLE as error:
+        raise DatasetError(
+            f"{path}: not a readable .npz archive ({type(error).__name__}: "
+            f"{' '.join(str(error).split())}); the file is truncated or corrupt: make or copy it "
+            "again"
+        ) from None
+    arrays = {k: v for k, v in values.items() if k in schema.ARRAYS}
+    return arrays, schema.attributes(path, {k: v for k, v in values.items() if k not in arrays})
 
 
 def _read_hdf5(path: Path) -> tuple[dict[str, np.ndarray], dict]:
@@ -47,21 +75,18 @@ def _read_hdf5(path: Path) -> tuple[dict[str, np.ndarray], dict]:
 
     try:
         with h5py.File(path, "r") as f:
-            keys = [k for k in (*REQUIRED, "timeouts", "next_observations") if k in f]
-            for key in keys:
-                if not isinstance(f[key], h5py.Dataset):
-                    raise DatasetError(
-                        f"{path}: {key!r} is an HDF5 {type(f[key]).__name__.lower()}, not an "
-                        "array; a dataset needs arrays at the top level (D4RL's layout)"
-                    )
-            arrays = {k: f[k][()] for k in keys}
-            attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
-    except (OSError, KeyError, RuntimeError) as error:
+            headers = schema.hdf5_headers(path, f)
+            schema.check(path, headers)
+            arrays = {key: f[key][()] for key in headers}
+            raw = {k: f.attrs[k] for k in schema.ATTRIBUTES if k in f.attrs}
+    except DatasetError:
+        raise
+    except (OSError, KeyError, RuntimeError, ValueError, TypeError) as error:
         raise DatasetError(
-            f"{path}: not a readable HDF5 file ({error}); it is truncated or corrupt: make or "
-            "copy it again"
+            f"{path}: not a readable HDF5 file ({' '.join(str(error).split())}); it is truncated "
+            "or corrupt: make or copy it again"
         ) from None
-    return arrays, attrs
+    return arrays, schema.attributes(path, raw)
 
 
 def from_arrays(arrays: dict[str, np.ndarray], attrs: dict, default_name: str) -> Dataset:

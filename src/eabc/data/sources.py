@@ -8,8 +8,8 @@ The top of the data layer: it uses the file readers (:mod:`eabc.data.loaders`) a
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
+from eabc import paths
 from eabc.data import generate, loaders
 from eabc.data.dataset import Dataset, DatasetError
 
@@ -17,7 +17,7 @@ from eabc.data.dataset import Dataset, DatasetError
 def load_dataset(source: str | os.PathLike, cache_dir: str | os.PathLike | None = None) -> Dataset:
     """Load a dataset from a path, a Minari id or a built-in name (see module docstring)."""
     text = str(source)
-    path = Path(text).expanduser()
+    path = paths.expand(text)
     if path.suffix in (".hdf5", ".h5", ".npz") or path.exists():
         return loaders.load_file(path)
     if text.startswith("minari:"):
