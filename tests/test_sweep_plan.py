@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 
 import pandas as pd
 import pytest
@@ -11,7 +12,7 @@ import pytest
 from eabc.agents import get_algorithm
 from eabc.cli import main
 from eabc.experiments import sweep
-from eabc.experiments.spec import RunSpec
+from eabc.experiments.spec import RunSpec, expand
 
 TRAIN = (("eval_episodes", 10), ("eval_interval", 5000), ("steps", 20000))
 
@@ -245,3 +246,51 @@ def test_a_run_another_root_has_done_or_is_training_is_left_to_it(
     merged = pd.read_csv(tmp_path / "report" / "runs.csv")
     assert sorted(merged["seed"]) == [0, 2]
     assert f"1 from `{other}` (run directories)" in (tmp_path / "report" / "report.md").read_text()
+
+
+BASE = {"datasets": ["hopper-random"], "algos": ["bc"]}
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"datasets": "hopper-random"}, r"^datasets must be a list, e.g. datasets: \[hopper-random\]$"),
+        ({"algos": "bc"}, r"^algos must be a list, e.g. algos: \[bc\]$"),
+        ({"seeds": 5}, r"^seeds must be a list, e.g. seeds: \[5\] for the seed 5, or \[0, 1, 2\]"),
+        ({"seeds": []}, r"^seeds is empty: list at least one seed"),
+        ({"seeds": [1.5]}, r"^seeds\[0\] must be an integer in \[0, 4294967295\], got 1.5$"),
+        ({"seeds": [0, True]}, r"^seeds\[1\] must be an integer in \[0, 4294967295\], got True$"),
+        ({"seeds": [2**32]}, r"^seeds\[0\] must be an integer in \[0, 4294967295\]"),
+        ({"seeds": [-1]}, r"^seeds\[0\] must be an integer"),
+        ({"steps": 0}, r"^steps must be an integer >= 1, got 0$"),
+        ({"steps": 1.0e6}, r"^steps must be an integer >= 1, got 1000000.0$"),
+        ({"datasets": [5]}, r"^datasets\[0\] must be a name \(text\), got 5$"),
+        ({"grid": {"num_critics": []}}, r"^grid.num_critics is empty"),
+        ({"grid": ["num_critics"]}, r"^grid must be a mapping of setting -> values"),
+        ({"train": {"eval_episodes": True}}, r"^bad train setting eval_episodes: .*got True$"),
+        ({"train": {"checkpoint_interval": 0}}, r"^bad train setting: checkpoint_interval must be positive"),
+        ({"train": "fast"}, r"^train must be a mapping of TrainConfig settings"),
+        ({"variants": [{"algo": "td3bc", "datasets": 5}]}, r"'datasets' must be a non-empty list"),
+        ({"variants": [7]}, r"a sweep variant is a mapping with an 'algo' key, got 7"),
+    ],
+)  # fmt: skip
+def test_a_spec_of_the_wrong_shape_is_refused_naming_the_key(change, message):
+    with pytest.raises(ValueError, match=message):
+        expand({**BASE, **change})
+
+
+def test_a_spec_key_of_the_wrong_shape_from_yaml_ends_in_one_line(tmp_path):
+    """Before: ``datasets: hopper-random`` made one run per character and ``seeds: 5`` a
+    traceback; every refusal is one line and leaves the root as it was."""
+    for text, message in [
+        ("datasets: hopper-random\nalgos: [bc]\n", "error: datasets must be a list"),
+        ("datasets: [hopper-random]\nalgos: [bc]\nseeds: 5\n", "error: seeds must be a list"),
+        ("datasets: [hopper-random]\nalgos: [bc]\nseeds: []\n", "error: seeds is empty"),
+        ("datasets: [hopper-random\n", "error: .*not valid YAML at line 2"),
+    ]:
+        spec = tmp_path / "spec.yaml"
+        spec.write_text(text)
+        with pytest.raises(SystemExit) as error:
+            main(["sweep", str(spec), "--root", str(tmp_path / "root"), "--dry-run"])
+        assert re.match(message, str(error.value.code)) and "\n" not in str(error.value.code)
+        assert not (tmp_path / "root").exists()

@@ -138,7 +138,9 @@ def _narrow_variants(spec: dict, algos: tuple[str, ...], datasets: tuple[str, ..
     """``--algos`` and ``--datasets`` on a spec with ``variants:``: keep the variants of those
     algorithms, on those datasets (a variant's own ``datasets:`` list too); an algorithm that no
     variant names runs with its preset settings, as in a spec without variants."""
-    entries = [v if isinstance(v, dict) else {"algo": v} for v in spec["variants"]]
+    from eabc.experiments.spec import variant_entries  # noqa: PLC0415
+
+    entries = variant_entries(spec["variants"])  # each a mapping of the right shape
     if algos:
         entries = [v for v in entries if v.get("algo") in algos]
     if datasets:
@@ -176,16 +178,18 @@ def sweep_spec(cmd: Sweep) -> dict:
             spec[key] = list(getattr(cmd, key))
     if cmd.steps is not None:
         spec["steps"] = cmd.steps
+    # Flags join the spec's train: and grid: mappings; a spec whose key is no mapping is left
+    # as it is, for the spec's check to refuse naming the key.
     train = {k: getattr(cmd, k) for k in SWEEP_TRAIN_FLAGS if getattr(cmd, k) is not None}
-    if train:  # flags beside the spec's train: keys, which they replace
-        spec["train"] = {**(spec.get("train") or {}), **train}
-    grid = dict(spec.get("grid") or {})
-    for item in cmd.grid:
-        key, sep, values = item.partition("=")
-        if not sep:
-            raise ValueError(f"bad --grid {item!r}; use KEY=V1,V2")
-        grid[key] = [parse_value(v) for v in values.split(",")]
-    if grid:
+    if train and isinstance(spec.get("train") or {}, dict):
+        spec["train"] = {**(spec.get("train") or {}), **train}  # the flags replace its keys
+    if cmd.grid and isinstance(spec.get("grid") or {}, dict):
+        grid = dict(spec.get("grid") or {})
+        for item in cmd.grid:
+            key, sep, values = item.partition("=")
+            if not sep:
+                raise ValueError(f"bad --grid {item!r}; use KEY=V1,V2")
+            grid[key] = [parse_value(v) for v in values.split(",")]
         spec["grid"] = grid
     return spec
 

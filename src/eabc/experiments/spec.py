@@ -13,6 +13,12 @@ and expands to the product datasets x algos x grid x seeds (grid settings apply 
 algorithms that have them). ``variants:`` lists named combinations instead of (or beside) a grid,
 ``{algo: eabc, critic_layer_norm: true}``, run breadth first in the order given; a variant's own
 ``datasets: [...]`` replaces the spec's for it, so one spec can put runs in any priority order.
+
+Before it expands, the whole specification is checked by one model (:class:`SweepSpec`): lists are
+lists (a bare ``datasets: hopper-random`` or ``seeds: 5`` is refused, naming the key, rather than
+read as one run per character or guessed at), seeds are whole numbers in [0, 2**32 - 1], nothing
+that makes runs is empty, ``steps`` and the ``train:`` settings have their TrainConfig types
+(1000, not "1000" or 1000.0) and ranges.
 """
 
 from __future__ import annotations
@@ -21,11 +27,13 @@ import dataclasses
 import hashlib
 import itertools
 import os
+import typing
 from pathlib import Path
 from typing import Any
 
 import pydantic
 
+from eabc import paths, ranges
 from eabc.agents import get_algorithm, validation
 from eabc.training.trainer import TrainConfig
 
@@ -56,7 +64,7 @@ class RunSpec:
         slug = "_".join(f"{short.get(k, k)}{_text(v)}" for k, v in self.overrides)
         name = self.dataset
         if is_path(name):  # pendA.npz in two folders are two datasets: a hash of the full path
-            full = str(Path(name).expanduser().resolve())
+            full = str(paths.expand(name).resolve())
             name = f"{Path(name).stem}-{hashlib.sha256(full.encode()).hexdigest()[:6]}"
         return "__".join(filter(None, [name.replace(":", "-").replace("/", "-"), self.algo, slug]))
 
@@ -91,7 +99,7 @@ def is_path(dataset: str) -> bool:
     """Whether a --dataset value names a file (rather than a built-in name or a Minari id)."""
     if dataset.startswith("minari:"):
         return False
-    path = Path(dataset).expanduser()
+    path = paths.expand(dataset)
     return path.suffix in (".hdf5", ".h5", ".npz") or path.exists()
 
 
@@ -124,51 +132,212 @@ def _text(value) -> str:
 
 
 def load_spec(path: str | os.PathLike) -> dict[str, Any]:
+    """A sweep specification from a YAML file: a regular file (a FIFO would block), UTF-8 text,
+    YAML, a mapping; :func:`check_spec` checks its keys."""
     import yaml  # noqa: PLC0415
 
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"sweep specification {path} does not exist")
-    spec = yaml.safe_load(path.read_text()) or {}
+    if not path.is_file():
+        raise ValueError(f"sweep specification {path} is not a regular file; give a YAML file")
+    try:
+        spec = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not UTF-8 text; a sweep specification is a YAML file") from None
+    except yaml.YAMLError as error:
+        where = getattr(error, "problem_mark", None)
+        line = f" at line {where.line + 1}" if where is not None else ""
+        problem = " ".join(str(getattr(error, "problem", None) or error).split())
+        raise ValueError(f"{path}: not valid YAML{line} ({problem}); fix the file") from None
     if not isinstance(spec, dict):
         raise ValueError(f"{path}: a sweep specification is a mapping (datasets:, algos:, ...)")
     return spec
 
 
-def expand(spec: dict[str, Any]) -> list[RunSpec]:
-    """Every run of a specification, in a stable order (see the module docstring for the keys)."""
-    known = {"datasets", "algos", "variants", "seeds", "steps", "grid", "train"}
-    unknown = set(spec) - known
-    if unknown:
-        raise ValueError(f"unknown sweep key(s) {sorted(unknown)}; use {sorted(known)}")
-    if not spec.get("datasets"):
-        raise ValueError("the sweep needs at least one entry in 'datasets'")
-    if not spec.get("algos") and not spec.get("variants"):
-        raise ValueError("the sweep needs at least one entry in 'algos' or 'variants'")
-    datasets = [_dataset(d) for d in spec["datasets"]]
-    variants = [_variant(v, datasets) for v in spec.get("variants") or []]
-    seeds = [int(s) for s in spec.get("seeds", [0])]
-    train = dict(spec.get("train") or {})
-    if "steps" in spec:
-        train["steps"] = int(spec["steps"])
-    bad = set(train) - TRAIN_FIELDS
-    if bad:
-        raise ValueError(f"unknown train setting(s) {sorted(bad)}; use {sorted(TRAIN_FIELDS)}")
-    try:  # validate (and convert: "1000" -> 1000) early, before any run starts
-        checked = pydantic.TypeAdapter(TrainConfig).validate_python(train)
+KEYS = ("datasets", "algos", "variants", "seeds", "steps", "grid", "train")
+
+
+def _names(key: str, value) -> list[str]:
+    """A list of non-empty names (datasets, algorithms); a bare name is refused, as a variant's
+    bare ``datasets:`` is: the list says what runs, with no guess."""
+    if isinstance(value, str):
+        raise ValueError(f"{key} must be a list, e.g. {key}: [{value}]")
+    if not isinstance(value, list | tuple):
+        raise ValueError(f"{key} must be a list of names, e.g. {key}: [a, b], got {value!r}")
+    for i, name in enumerate(value):
+        if not isinstance(name, str) or not name.strip():
+            raise ValueError(f"{key}[{i}] must be a name (text), got {name!r}")
+        try:
+            paths.expand(name)  # a file's ~user that is no user: named here, not mid-expansion
+        except ValueError as error:
+            raise ValueError(f"{key}[{i}]: {error}") from None
+    return list(value)
+
+
+class SweepSpec(pydantic.BaseModel):
+    """A sweep specification (YAML, preset and flags merged), checked as a whole before it
+    expands to runs: each key's type and range, in one line that names the key."""
+
+    model_config = pydantic.ConfigDict(extra="forbid", frozen=True)
+
+    datasets: list[str]
+    """Any --dataset value; at least one."""
+    algos: list[str] = []
+    """Any --algo value (run with their presets and the grid)."""
+    variants: list[dict[str, Any]] = []
+    """Named combinations (:func:`variant_entries`), a bare name as ``{algo: NAME}``."""
+    seeds: list[int] = [0]
+    """Whole numbers in [0, 2**32 - 1]; at least one."""
+    steps: int | None = None
+    """Gradient steps per run (replaces train's steps)."""
+    grid: dict[str, list[Any]] = {}
+    """Setting -> the values to try (a single value: that value only)."""
+    train: dict[str, Any] = {}
+    """TrainConfig fields, each of its declared type (no conversion: 1000, not "1000")."""
+
+    @pydantic.model_validator(mode="before")
+    @classmethod
+    def _keys(cls, spec):
+        if not isinstance(spec, dict):
+            raise ValueError(
+                f"a sweep specification is a mapping (datasets:, algos:, ...), got {spec!r}"
+            )
+        unknown = set(spec) - set(KEYS)
+        if unknown:
+            raise ValueError(
+                f"unknown sweep key(s) {sorted(map(str, unknown))}; use {sorted(KEYS)}"
+            )
+        if not spec.get("datasets"):
+            raise ValueError("the sweep needs at least one entry in 'datasets'")
+        if not spec.get("algos") and not spec.get("variants"):
+            raise ValueError("the sweep needs at least one entry in 'algos' or 'variants'")
+        return spec
+
+    @pydantic.field_validator("datasets", "algos", mode="before")
+    @classmethod
+    def _name_list(cls, value, info):
+        return _names(info.field_name, value)
+
+    @pydantic.field_validator("variants", mode="before")
+    @classmethod
+    def _variant_list(cls, value):
+        return variant_entries(value)
+
+    @pydantic.field_validator("seeds", mode="before")
+    @classmethod
+    def _seed_list(cls, value):
+        if isinstance(value, int) and not isinstance(value, bool):
+            raise ValueError(
+                f"seeds must be a list, e.g. seeds: [{value}] for the seed {value}, or "
+                f"[0, 1, 2] for three seeds; got the single number {value}"
+            )
+        if not isinstance(value, list | tuple):
+            raise ValueError(
+                f"seeds must be a list of whole numbers, e.g. seeds: [0, 1, 2], got {value!r}"
+            )
+        if not value:
+            raise ValueError("seeds is empty: list at least one seed, e.g. seeds: [0]")
+        for i, seed in enumerate(value):
+            ranges.check(seed, ranges.Seed, f"seeds[{i}]")
+        return list(value)
+
+    @pydantic.field_validator("steps", mode="before")
+    @classmethod
+    def _steps(cls, value):
+        return ranges.check(value, ranges.Positive, "steps")
+
+    @pydantic.field_validator("grid", mode="before")
+    @classmethod
+    def _grid(cls, value):
+        if value is None:
+            return {}
+        if not isinstance(value, dict):
+            raise ValueError(
+                f"grid must be a mapping of setting -> values, e.g. grid: {{num_critics: [5, 10]}}, got {value!r}"
+            )
+        grid = {}
+        for key, values in value.items():
+            if not isinstance(key, str):
+                raise ValueError(f"grid key {key!r} must be a setting's name")
+            values = list(values) if isinstance(values, list | tuple) else [values]
+            if not values:
+                raise ValueError(
+                    f"grid.{key} is empty: give at least one value, e.g. {key}: [5, 10]"
+                )
+            grid[key] = values
+        return grid
+
+    @pydantic.field_validator("train", mode="before")
+    @classmethod
+    def _train(cls, value):
+        if value is None:
+            return {}
+        if not isinstance(value, dict):
+            raise ValueError(
+                f"train must be a mapping of TrainConfig settings, e.g. train: {{eval_interval: 5000}}, got {value!r}"
+            )
+        bad = set(value) - TRAIN_FIELDS
+        if bad:
+            raise ValueError(
+                f"unknown train setting(s) {sorted(map(str, bad))}; use {sorted(TRAIN_FIELDS)}"
+            )
+        for key, setting in value.items():
+            try:
+                pydantic.TypeAdapter(_TRAIN_TYPES[key]).validate_python(setting, strict=True)
+            except pydantic.ValidationError as error:
+                raise ValueError(
+                    f"bad train setting {key}: {error.errors()[0]['msg'].lower()}, got {setting!r}"
+                ) from None
+        return dict(value)
+
+    @pydantic.model_validator(mode="after")
+    def _train_config(self):
+        """The train settings together (intervals that divide, a cache_dir that can be one),
+        as TrainConfig checks them."""
+        settings = self.train_settings()
+        try:
+            if settings.get("cache_dir"):
+                paths.expand(settings["cache_dir"])  # a ~user that is not one: named
+            TrainConfig(**settings)
+        except ValueError as error:
+            raise ValueError(f"bad train setting: {error}") from None
+        return self
+
+    def train_settings(self) -> dict[str, Any]:
+        """``train`` with ``steps`` (which replaces train's)."""
+        return self.train | ({"steps": self.steps} if self.steps is not None else {})
+
+
+_TRAIN_TYPES = typing.get_type_hints(TrainConfig)
+
+
+def check_spec(spec: dict[str, Any]) -> SweepSpec:
+    """The specification checked by :class:`SweepSpec`; ``ValueError`` of one line otherwise."""
+    try:
+        return SweepSpec.model_validate(spec)
     except pydantic.ValidationError as error:
         first = error.errors()[0]
-        where = ".".join(map(str, first["loc"])) or "train"
-        raise ValueError(f"bad train setting {where}: {first['msg']}") from None
-    train = {k: getattr(checked, k) for k in train}
+        message = first["msg"].removeprefix("Value error, ")
+        if first["type"] != "value_error":  # pydantic's own: name the key and the value
+            where = ".".join(map(str, first["loc"])) or "sweep specification"
+            message = f"{where}: {message}, got {first.get('input')!r}"
+        raise ValueError(message) from None
+
+
+def expand(spec: dict[str, Any]) -> list[RunSpec]:
+    """Every run of a specification, in a stable order (see the module docstring for the keys),
+    after :func:`check_spec` checked it."""
+    checked = check_spec(spec)
+    datasets = [_dataset(d) for d in checked.datasets]
+    variants = [_variant(v, datasets) for v in checked.variants]
+    seeds = list(checked.seeds)
+    train = checked.train_settings()
     if train.get("cache_dir"):  # absolute, as dataset files below: workers start elsewhere
-        train["cache_dir"] = str(Path(train["cache_dir"]).expanduser().resolve())
-    grid = {
-        k: list(v) if isinstance(v, list | tuple) else [v]
-        for k, v in (spec.get("grid") or {}).items()
-    }
+        train["cache_dir"] = str(paths.expand(train["cache_dir"]).resolve())
+    grid = dict(checked.grid)
     runs = []
-    algos = spec.get("algos") or []
+    algos = checked.algos
     for dataset in datasets:
         for algo in algos:
             fields = {f.name for f in dataclasses.fields(get_algorithm(algo).preset)}
@@ -193,29 +362,49 @@ def expand(spec: dict[str, Any]) -> list[RunSpec]:
 
 
 def _dataset(name: str) -> str:
-    return str(Path(name).expanduser().resolve()) if is_path(name) else name
+    return str(paths.expand(name).resolve()) if is_path(name) else name
 
 
-def _variant(entry, datasets: list[str]) -> tuple[str, tuple[tuple[str, Any], ...], list[str]]:
-    """A ``variants:`` entry, ``{algo: eabc, critic_layer_norm: true, ...}``: one algorithm with
-    fixed settings (checked against the algorithm's own), and the datasets it runs on (its own
-    ``datasets:`` list, else the spec's)."""
-    if isinstance(entry, str):
-        entry = {"algo": entry}
-    if not isinstance(entry, dict) or "algo" not in entry:
-        raise ValueError(f"a sweep variant is a mapping with an 'algo' key, got {entry!r}")
+def variant_entries(value) -> list[dict[str, Any]]:
+    """The ``variants:`` list as mappings ``{algo: NAME, datasets: [...], SETTING: VALUE}`` (a
+    bare name is ``{algo: NAME}``), each checked for its shape; :func:`_variant` checks the
+    settings against the algorithm's own."""
+    if not isinstance(value, list | tuple):
+        raise ValueError(f"variants must be a list of {{algo: ..., SETTING: VALUE}}, got {value!r}")
+    entries = []
+    for entry in value:
+        entry = {"algo": entry} if isinstance(entry, str) else entry
+        if not isinstance(entry, dict) or not isinstance(entry.get("algo"), str):
+            raise ValueError(f"a sweep variant is a mapping with an 'algo' key, got {entry!r}")
+        if not all(isinstance(key, str) for key in entry):
+            raise ValueError(f"variant {entry!r}: each setting is named by text")
+        only = entry.get("datasets")
+        named = isinstance(only, list | tuple) and all(isinstance(d, str) and d for d in only)
+        if "datasets" in entry and not (named and only):
+            raise ValueError(
+                f"variant {entry!r}: 'datasets' must be a non-empty list of dataset names, got {only!r}"
+            )
+        if "datasets" in entry:
+            _names("datasets", only)
+        entries.append(dict(entry))
+    return entries
+
+
+def _variant(
+    entry: dict, datasets: list[str]
+) -> tuple[str, tuple[tuple[str, Any], ...], list[str]]:
+    """A ``variants:`` entry (:func:`variant_entries`), ``{algo: eabc, critic_layer_norm: true}``:
+    one algorithm with fixed settings (checked against the algorithm's own), and the datasets it
+    runs on (its own ``datasets:`` list, else the spec's)."""
     settings = {k: v for k, v in entry.items() if k not in ("algo", "datasets")}
-    only = entry.get("datasets", datasets)
-    if isinstance(only, str) or not only or not all(isinstance(d, str) for d in only):
-        raise ValueError(
-            f"variant {entry!r}: 'datasets' must be a non-empty list of dataset names, got {only!r}"
-        )
     unknown = set(settings) - _fields(entry["algo"])
     if unknown:
         raise ValueError(
             f"variant {entry!r}: {entry['algo']} has no setting(s) {sorted(unknown)}; it has "
             f"{sorted(_fields(entry['algo']))}"
         )
+    validation.validate(get_algorithm(entry["algo"]).preset, entry["algo"], settings)  # values
+    only = entry.get("datasets", datasets)
     return entry["algo"], _frozen(settings), [_dataset(d) for d in only]
 
 
