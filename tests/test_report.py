@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 
 import numpy as np
@@ -9,7 +10,8 @@ import pandas as pd
 import pytest
 from scipy import stats
 
-from eabc.experiments import figures, report, tables
+from eabc.cli import main
+from eabc.experiments import compare, figures, report, tables
 from eabc.experiments import stats as aggregate
 
 DATASETS = ("walker2d-medium", "hopper-random")  # out of table order on purpose
@@ -401,3 +403,96 @@ def test_an_average_over_fewer_datasets_says_so_and_is_never_bold(results):
     assert average[1].endswith("(1/2)") and "**" not in average[1]  # IQL's column
     assert sum("**" in cell for cell in average) == 1  # the best complete column keeps its bold
     assert rows["walker2d-medium"][1] == "**99.0 ± 0.0**"
+
+
+# Runs on data without reference scores (a user's own file)
+
+
+def without_scores(runs: pd.DataFrame, evaluations: pd.DataFrame, datasets=DATASETS):
+    """The results as runs on ``datasets`` would have them without reference returns: no
+    score, a final return (here 30 x what the score was)."""
+    raw = runs["dataset"].isin(datasets)
+    runs = runs.assign(final_return=30 * runs["final_score"])
+    runs.loc[raw, "final_score"] = np.nan
+    raw_ids = runs.loc[raw, "run_id"]
+    evaluations = evaluations.copy()
+    evaluations.loc[evaluations["run_id"].isin(raw_ids), "score"] = np.nan
+    return runs, evaluations
+
+
+def test_runs_without_reference_scores_are_reported_in_raw_return(results, tmp_path):
+    runs, evaluations = without_scores(*results)
+    published = runs[(runs["algo"] == "eabc") & (runs["variant"] == "")]
+    recommended = published.assign(algo="eabc-ln", run_id=published["run_id"] + "-ln")
+    runs = pd.concat([runs, recommended], ignore_index=True)
+    runs = runs.assign(q_out_of_range_step=np.nan, q_mean_max=np.nan)  # for failures.md
+    paths = report.write_report(runs, evaluations, tmp_path)
+    table = paths["table.md"].read_text()
+    assert table.startswith("Raw return: these runs have no reference scores")
+    rows = markdown_rows(table)
+    expected = runs[runs["algo"] == "td3bc"].groupby("dataset")["final_return"].mean()
+    for dataset, mean in expected.items():
+        assert abs(float(rows[dataset][0].strip("*").split(" ± ")[0]) - mean) <= 0.05
+    text = paths["report.md"].read_text()
+    assert "## Returns (Table 1)" in text and "Raw return: these runs have no reference" in text
+    assert "mean final return" in paths["comparison.md"].read_text()
+    assert "| TD3+BC return | EABC: return |" in paths["failures.md"].read_text()
+    assert "Not computed for raw returns" in text and "aggregate.md" not in paths
+    assert "profiles.png" not in paths and "Raw return" in paths["table.html"].read_text()
+
+
+def test_a_dataset_without_reference_scores_gets_a_section_of_returns(results, tmp_path):
+    runs, evaluations = without_scores(*results, datasets=["hopper-random"])
+    paths = report.write_report(runs, evaluations, tmp_path)
+    assert set(markdown_rows(paths["table.md"].read_text())) == {"walker2d-medium", "Average"}
+    returns = paths["returns_table.md"].read_text()
+    assert returns.startswith("Raw return") and "hopper-random" in returns
+    text = paths["report.md"].read_text()
+    assert "## Returns of the runs without reference scores" in text
+    assert "Also as [returns_comparison.md](returns_comparison.md)" in text
+    assert "returns_curves.png" in paths and "IQM" in text  # the scores keep their statistics
+    page = paths["report.html"].read_text()  # each score table rendered as itself
+    assert page.count('<table class="scores">') == 2
+
+
+def test_a_missing_baseline_lists_the_labels_there_are(results):
+    runs, _ = results
+    with pytest.raises(ValueError, match=r"no run is labelled 'cql'; the labels are: td3bc, iql"):
+        compare.comparison_table(runs, "cql")
+    unscored = runs.assign(final_score=np.nan)
+    with pytest.raises(ValueError, match=r"the runs labelled 'td3bc' have no final_score yet"):
+        compare.comparison_table(unscored, "td3bc")
+
+
+def _run_directory(root, algo: str, returns: list[float]):
+    """A finished run of ``algo`` on a user's file without reference scores, as training
+    leaves it: config.json, log.csv (evaluations with a return and no score), summary.json."""
+    run_dir = root / algo
+    run_dir.mkdir(parents=True)
+    steps = 100 * len(returns)
+    train = {"dataset": str(root / "my_data.npz"), "algo": algo, "seed": 0, "steps": steps,
+             "env": "Hopper-v4"}  # fmt: skip
+    config = {"train": train, "agent": {}, "dataset": {"name": "my_data", "ref_min_score": None}}
+    (run_dir / "config.json").write_text(json.dumps(config))
+    rows = ["step,return_mean,return_std,score,wall_time,steps_per_s"]
+    rows += [f"{100 * (i + 1)},{r},1.0,,{i + 1},100.0" for i, r in enumerate(returns)]
+    (run_dir / "log.csv").write_text("\n".join(rows) + "\n")
+    summary = {"steps": steps, "evaluations": len(returns), "final_return": float(np.mean(returns))}
+    (run_dir / "summary.json").write_text(json.dumps(summary))
+
+
+def test_eabc_report_on_runs_of_a_users_own_data_reports_returns(tmp_path, capsys):
+    """Before: nothing written, and 'no finished run is labelled td3bc; the labels are: '."""
+    root = tmp_path / "root"
+    _run_directory(root, "td3bc", [500.0, 700.0])
+    _run_directory(root, "bc", [400.0, 450.0])
+    main(["report", str(root)])
+    text = (root / "report" / "report.md").read_text()
+    assert "## Returns (Table 1)" in text and "Raw return: these runs have no reference" in text
+    rows = markdown_rows((root / "report" / "table.md").read_text())
+    assert rows["my_data"] == ["425.0", "**600.0**"]  # BC, TD3+BC: the mean final returns
+    assert "mean final return" in (root / "report" / "comparison.md").read_text()
+    with pytest.raises(
+        SystemExit, match=r"--baseline iql: no runs with that label; labels: bc, td3bc"
+    ):
+        main(["report", str(root), "--baseline", "iql"])

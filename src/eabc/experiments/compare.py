@@ -56,15 +56,19 @@ def comparison_table(
     seed: int = 0,
 ) -> pd.DataFrame:
     """One row per (label, dataset) for every label but ``baseline``, plus each label's
-    ``Average`` row; columns :data:`COLUMNS`. Raises ``ValueError`` when no run has the baseline's
-    label (the message lists the labels there are)."""
+    ``Average`` row; columns :data:`COLUMNS`. Raises ``ValueError`` when no run with a finite
+    ``metric`` has the baseline's label (the message lists the labels there are)."""
     runs = labelled(runs)
-    runs = runs[np.isfinite(runs[metric].astype(float))]
-    labels = ordered_labels(runs)
+    every = ordered_labels(runs)
+    runs = runs[np.isfinite(pd.to_numeric(runs[metric], errors="coerce"))]
+    labels = ordered_labels(runs) if len(runs) else []
     if baseline not in labels:
-        raise ValueError(
-            f"no finished run is labelled {baseline!r}; the labels are: {', '.join(labels)}"
-        )
+        if baseline in every:
+            why = f"the runs labelled {baseline!r} have no {metric} yet (no evaluation)"
+        else:
+            why = f"no run is labelled {baseline!r}"
+        having = f"; labels with a {metric}: {', '.join(labels)}" if labels else ""
+        raise ValueError(f"{why}; the labels are: {', '.join(every)}{having}")
     scores = {
         (label, dataset): group[metric].to_numpy(dtype=float)
         for (label, dataset), group in runs.groupby(["label", "dataset"])
@@ -115,12 +119,14 @@ def _row(label, dataset, mean, low, high, runs, fewest, baseline_mean, baseline_
     }
 
 
-def comparison_to_markdown(table: pd.DataFrame, baseline: str, alpha: float = 0.05) -> str:
-    """The comparison as Markdown, one block per label."""
+def comparison_to_markdown(
+    table: pd.DataFrame, baseline: str, alpha: float = 0.05, what: str = "score"
+) -> str:
+    """The comparison as Markdown, one block per label (``what``: the metric's name)."""
     name = display_name(baseline)
     level = f"{100 * (1 - alpha):g}%"
     lines = [
-        f"Each algorithm against {name}: its mean final score over seeds with the {level} "
+        f"Each algorithm against {name}: its mean final {what} over seeds with the {level} "
         f"bootstrap interval of that mean, {name}'s mean, the difference, and whether the "
         f"interval lies above {name}'s mean, below it, or reaches it (tie; `-`: fewer than "
         f"{MIN_RUNS} runs, too few for an interval to mean anything). Average: mean of the per-dataset means over the datasets both ran, with a "

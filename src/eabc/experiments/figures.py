@@ -91,20 +91,29 @@ def _save(fig, path: str | Path) -> Path:
     return path
 
 
-def _curve_stats(runs: pd.DataFrame, evaluations: pd.DataFrame, by: str) -> pd.DataFrame:
-    """Mean and std over seeds of the score at each step, per ``(dataset, by)``."""
-    require_columns(evaluations, ("run_id", "step", "score"), "evaluations")
-    merged = evaluations[["run_id", "step", "score"]].merge(
+def _curve_stats(
+    runs: pd.DataFrame, evaluations: pd.DataFrame, by: str, curve: str = "score"
+) -> pd.DataFrame:
+    """Mean and std over seeds of ``curve`` (the score, or the return) at each step, per
+    ``(dataset, by)``."""
+    require_columns(evaluations, ("run_id", "step", curve), "evaluations")
+    merged = evaluations[["run_id", "step", curve]].merge(
         runs[["run_id", "dataset", by]], on="run_id"
     )
-    merged = merged[np.isfinite(merged["score"].astype(float))]
-    per_run = merged.groupby(["dataset", by, "run_id", "step"], as_index=False)["score"].mean()
-    stats = per_run.groupby(["dataset", by, "step"])["score"].agg(["mean", "std", "count"])
+    merged = merged[np.isfinite(merged[curve].astype(float))]
+    per_run = merged.groupby(["dataset", by, "run_id", "step"], as_index=False)[curve].mean()
+    stats = per_run.groupby(["dataset", by, "step"])[curve].agg(["mean", "std", "count"])
     return stats.reset_index().fillna({"std": 0.0})
 
 
 def _plot_curves(
-    stats: pd.DataFrame, by: str, keys: list[str], path, title: str, names=str
+    stats: pd.DataFrame,
+    by: str,
+    keys: list[str],
+    path,
+    title: str,
+    names=str,
+    ylabel: str = "normalised score",
 ) -> Path:
     from matplotlib.ticker import EngFormatter  # noqa: PLC0415
 
@@ -123,7 +132,7 @@ def _plot_curves(
         ax.set_title(dataset)
         ax.set_xlabel("gradient steps")
         ax.xaxis.set_major_formatter(EngFormatter(sep=""))  # 500k, 1M
-        ax.set_ylabel("normalised score")
+        ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
     if not datasets:
         axes[0].set_visible(True)
@@ -143,15 +152,24 @@ def _plot_curves(
     return _save(fig, path)
 
 
-def plot_learning_curves(runs: pd.DataFrame, evaluations: pd.DataFrame, path: str | Path) -> Path:
-    """Figure 1: per dataset, the score of each algorithm label over gradient steps.
+def plot_learning_curves(
+    runs: pd.DataFrame,
+    evaluations: pd.DataFrame,
+    path: str | Path,
+    curve: str = "score",
+    ylabel: str = "normalised score",
+) -> Path:
+    """Figure 1: per dataset, the score (or ``curve``: ``return_mean``) of each algorithm label
+    over gradient steps.
 
     The line is the mean over seeds, the band +-1 std over seeds (ddof 1; none with one seed).
     """
     runs = labelled(runs)
-    stats = _curve_stats(runs, evaluations, "label")
+    stats = _curve_stats(runs, evaluations, "label", curve)
     title = "Learning curves: mean ± 1 std over seeds"
-    return _plot_curves(stats, "label", ordered_labels(runs), path, title, names=display_name)
+    return _plot_curves(
+        stats, "label", ordered_labels(runs), path, title, names=display_name, ylabel=ylabel
+    )
 
 
 def _value_key(value):
@@ -250,6 +268,8 @@ def plot_ablation(
     parameter: str,
     path: str | Path,
     algo: str = "eabc",
+    curve: str = "score",
+    ylabel: str = "normalised score",
 ) -> Path:
     """Figures 2-4: per dataset, learning curves of ``algo`` for each value of ``parameter``.
 
@@ -261,10 +281,10 @@ def plot_ablation(
         raise ValueError(f"no runs of {algo!r} to plot an ablation of {parameter!r}")
     values = ablation_values(runs, parameter, algo)
     sub = sub.assign(key=[_value_label(parameter, v, algo) for v in sub["value"]])
-    stats = _curve_stats(sub, evaluations, "key")
+    stats = _curve_stats(sub, evaluations, "key", curve)
     keys = [_value_label(parameter, v, algo) for v in values]
     title = f"Ablation of {parameter} ({display_name(algo)})"
-    return _plot_curves(stats, "key", keys, path, title)
+    return _plot_curves(stats, "key", keys, path, title, ylabel=ylabel)
 
 
 def plot_runtime(runs: pd.DataFrame, path: str | Path) -> Path:

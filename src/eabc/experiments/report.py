@@ -21,6 +21,9 @@ from eabc.experiments.labels import ABLATION_PARAMETERS, display_name, labelled
 from eabc.experiments.tables import (
     AVERAGE,
     MIN_RUNS,
+    RETURN,
+    SCORE,
+    Metric,
     aggregate_table,
     aggregate_to_markdown,
     failure_table,
@@ -66,17 +69,19 @@ def _span(values, unit: str) -> str:
     return f"{low} {plural}" if low == high else f"{low}-{high} {plural}"
 
 
-def evidence(runs: pd.DataFrame, evaluations: pd.DataFrame, table: pd.DataFrame) -> str:
+def evidence(
+    runs: pd.DataFrame, evaluations: pd.DataFrame, table: pd.DataFrame, metric: Metric = SCORE
+) -> str:
     """What Table 1's cells rest on: evaluations per run score and runs (seeds) per cell."""
     from eabc.training.trainer import FINAL_EVALUATIONS  # noqa: PLC0415
 
-    scored = evaluations[np.isfinite(evaluations["score"].astype(float))]
+    scored = evaluations[np.isfinite(pd.to_numeric(evaluations[metric.curve], errors="coerce"))]
     counts = scored.groupby("run_id").size().reindex(runs["run_id"], fill_value=0)
     used = [min(int(n), FINAL_EVALUATIONS) for n in counts if n > 0] or [0]
     cells = table.xs("runs", axis=1, level="stat").drop(index=AVERAGE)
     per_cell = [int(n) for n in cells.to_numpy().ravel() if n > 0] or [0]
     return (
-        f"each run's score is the mean of its last {_span(used, 'evaluation')} (at most "
+        f"each run's {metric.name} is the mean of its last {_span(used, 'evaluation')} (at most "
         f"{FINAL_EVALUATIONS}); each cell's mean ± std is over {_span(per_cell, 'run')} (seeds)"
     )
 
@@ -93,6 +98,90 @@ def _warning(thin: list[str]) -> str:
         f"**Warning:** {', '.join(thin)} rest on fewer than {MIN_RUNS} runs on some dataset: "
         "their std and the bootstrap intervals below say little there; run more seeds.\n"
     )
+
+
+def reference_groups(runs: pd.DataFrame) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """``(scored, raw)``: the runs on data with reference scores (or with no evaluation yet), and
+    the runs on datasets no run has a score for (no reference returns: a user's own file) that
+    have a final return, which reports show in raw return."""
+    if "final_return" not in runs:  # an archive or a frame from before returns were kept
+        return runs, runs.iloc[:0]
+    scores = pd.to_numeric(runs["final_score"], errors="coerce")
+    returns = pd.to_numeric(runs["final_return"], errors="coerce")
+    scored_datasets = set(runs.loc[np.isfinite(scores), "dataset"])
+    raw = ~runs["dataset"].isin(scored_datasets) & np.isfinite(returns)
+    return runs[~raw], runs[raw]
+
+
+def _has(runs: pd.DataFrame, metric: Metric) -> bool:
+    return bool(np.isfinite(pd.to_numeric(runs[metric.column], errors="coerce")).any())
+
+
+def _axis(metric: Metric) -> str:
+    return "normalised score" if metric is SCORE else "return"
+
+
+def _metric_sections(
+    runs: pd.DataFrame,
+    evaluations: pd.DataFrame,
+    metric: Metric,
+    baseline: str | None,
+    fix: str,
+    write,
+    prefix: str = "",
+) -> tuple[pd.DataFrame, dict]:
+    """Table 1, the comparison with ``baseline``, published EABC beside ``fix`` and the
+    stability table of ``runs`` in ``metric``, each written to its file (``PREFIXtable.md``,
+    ...); returns the table and the report's text of each, by name. A comparison that cannot be
+    made says why in its place."""
+    table = score_table(runs, metric.column)
+    heading = "Scores" if metric is SCORE else "Returns"
+    # A table of returns says so wherever it is read, not only in report.md.
+    note = "" if metric is SCORE else f"{metric.title}.\n"
+    write(f"{prefix}table.md", (note and note + "\n") + to_markdown(table))
+    body = (note and f'<p class="note">{html.escape(note.strip())}</p>\n') + to_html(table)
+    write(f"{prefix}table.html", html_page(f"{heading} (Table 1)", body))
+    write(f"{prefix}table.tex", (note and f"% {note}") + to_latex(table))
+    stability = stability_to_markdown(stability_table(runs, metric.column), metric.name)
+    write(f"{prefix}stability.md", stability)
+    thin = thin_evidence(table)
+    links = (
+        " Also as [HTML](table.html) and [LaTeX](table.tex); the whole report as a page: "
+        "[report.html](report.html). Figures as PNG (300 dpi), PDF and SVG."
+    )
+    caption = (
+        f"{metric.title}: {evidence(runs, evaluations, table, metric)}; best mean per row in "
+        f"bold; the Average row averages the per-dataset means and stds.{'' if prefix else links}\n"
+    )
+    level = "###" if prefix else "##"  # a section of its own, or inside the returns' section
+    sections = {"table": [caption, *([_warning(thin)] if thin else []), to_markdown(table)]}
+    sections["comparison"] = []
+    if baseline is not None:
+        name = display_name(baseline)
+        try:
+            compared = compare.comparison_table(runs, baseline, metric.column)
+        except ValueError as error:
+            sections["comparison"] = [f"Not compared with {name} here: {error}.\n"]
+        else:
+            text = compare.comparison_to_markdown(compared, baseline, what=metric.name)
+            write(f"{prefix}comparison.md", text)
+            sections["comparison"] = [
+                f"{level} Against {name}, dataset by dataset\n",
+                f"Also as [{prefix}comparison.md]({prefix}comparison.md).\n",
+                text,
+            ]
+    sections["failures"] = []
+    if {PUBLISHED, fix} <= set(labelled(runs)["label"]):
+        failures = failure_table(runs, PUBLISHED, fix, baseline, metric.column)
+        text = failure_to_markdown(failures, PUBLISHED, fix, baseline, metric.name)
+        write(f"{prefix}failures.md", text)
+        sections["failures"] = [
+            f"{level} Where published EABC fails, beside {display_name(fix)}\n",
+            f"Also as [{prefix}failures.md]({prefix}failures.md).\n",
+            text,
+        ]
+    sections["stability"] = stability
+    return table, sections
 
 
 RUNTIME_NOTE = (
@@ -134,51 +223,63 @@ def write_report(
         paths[name] = out / name
         paths[name].write_text(text, encoding="utf-8")
 
-    table = score_table(runs)
-    write("table.md", to_markdown(table))
-    stability = stability_to_markdown(stability_table(runs))
-    write("stability.md", stability)
     write("runs.csv", runs.drop(columns=["config"], errors="ignore").to_csv(index=False))
     write("evaluations.csv", evaluations.to_csv(index=False))
-    write("table.html", html_page("Scores (Table 1)", to_html(table)))
-    write("table.tex", to_latex(table))
-    aggregate = aggregate_to_markdown(aggregate_table(runs))
-    write("aggregate.md", aggregate)
+    scored, raw = reference_groups(runs)
+    # Scores where any run has one; raw returns for the runs on data without reference returns
+    # (a section of their own beside the scores, or the whole report when no run has a score).
+    metric, main = (SCORE, scored) if raw.empty or _has(scored, SCORE) else (RETURN, runs)
     baseline = baseline or compare.default_baseline(runs)
-    comparison = []
-    if baseline is not None:
-        text = compare.comparison_to_markdown(compare.comparison_table(runs, baseline), baseline)
-        write("comparison.md", text)
-        comparison = [
-            f"## Against {display_name(baseline)}, dataset by dataset\n",
-            "Also as [comparison.md](comparison.md).\n",
-            text,
-        ]
-    failures = []
-    if {PUBLISHED, fix} <= set(labelled(runs)["label"]):
-        text = failure_to_markdown(
-            failure_table(runs, PUBLISHED, fix, baseline), PUBLISHED, fix, baseline
+    table, results = _metric_sections(main, evaluations, metric, baseline, fix, write)
+    tables = [table]
+    returns = []
+    if main is scored and not raw.empty:
+        raw_table, raw_results = _metric_sections(
+            raw, evaluations, RETURN, baseline, fix, write, "returns_"
         )
-        write("failures.md", text)
-        failures = [
-            f"## Where published EABC fails, beside {display_name(fix)}\n",
-            "Also as [failures.md](failures.md).\n",
-            text,
+        tables.append(raw_table)
+        paths["returns_curves.png"] = figures.plot_learning_curves(
+            raw, evaluations, out / "returns_curves.png", RETURN.curve, RETURN.name
+        )
+        returns = [
+            "## Returns of the runs without reference scores\n",
+            f"On {', '.join(sorted(set(raw['dataset'])))}, which have no reference returns: "
+            "these runs are left out of the scores above. Also as "
+            "[returns_table.md](returns_table.md).\n",
+            *raw_results["table"],
+            *raw_results["comparison"],
+            *raw_results["failures"],
+            "### Stability\n",
+            raw_results["stability"],
+            "![Learning curves (raw return)](returns_curves.png)\n",
         ]
-    paths["curves.png"] = figures.plot_learning_curves(runs, evaluations, out / "curves.png")
-    paths["profiles.png"] = figures.plot_performance_profiles(runs, out / "profiles.png")
+    if metric is SCORE:
+        aggregate = aggregate_to_markdown(aggregate_table(main))
+        write("aggregate.md", aggregate)
+        paths["profiles.png"] = figures.plot_performance_profiles(main, out / "profiles.png")
+        aggregate = [aggregate, "![Performance profiles](profiles.png)\n"]
+    else:
+        aggregate = [
+            "Not computed for raw returns: these statistics and the performance profiles pool "
+            "D4RL-normalised scores over datasets (the optimality gap is 100 minus a score), and "
+            "the returns of different environments are on different scales.\n"
+        ]
+    paths["curves.png"] = figures.plot_learning_curves(
+        main, evaluations, out / "curves.png", metric.curve, _axis(metric)
+    )
     ablations = []
     for parameter in ABLATION_PARAMETERS:
-        algo = figures._ablation_algo(runs, parameter)
+        algo = figures._ablation_algo(main, parameter)
         if algo is not None:
             name = f"ablation_{parameter}.png"
-            paths[name] = figures.plot_ablation(runs, evaluations, parameter, out / name, algo)
+            paths[name] = figures.plot_ablation(
+                main, evaluations, parameter, out / name, algo, metric.curve, _axis(metric)
+            )
             ablations.append(f"### {parameter} ({display_name(algo)})\n\n![{parameter}]({name})\n")
     paths["runtime.png"] = figures.plot_runtime(runs, out / "runtime.png")
     for name in [n for n in paths if n.endswith(".png")]:
         for suffix in figures.VECTOR_FORMATS:
             paths[name.removesuffix(".png") + suffix] = out / (name.removesuffix(".png") + suffix)
-    basis = evidence(runs, evaluations, table)
     thin = thin_evidence(table)
 
     status = runs["status"] if "status" in runs else pd.Series("done", index=runs.index)
@@ -237,16 +338,13 @@ def write_report(
             f"Runs whose critics left the value range the rewards allow ({len(diverged)} of "
             f"{len(runs)}; their later scores rest on a diverging critic): {', '.join(diverged)}.\n"
         )
+    heading = "Scores" if metric is SCORE else "Returns"
     sections += [
-        "## Scores (Table 1)\n",
-        f"D4RL-normalised score: {basis}; best mean per row in bold; the Average row averages "
-        "the per-dataset means and stds. Also as [HTML](table.html) and [LaTeX](table.tex); "
-        "the whole report as a page: [report.html](report.html). Figures as PNG (300 dpi), "
-        "PDF and SVG.\n",
-        *([_warning(thin)] if thin else []),
-        to_markdown(table),
-        *comparison,
-        *failures,
+        f"## {heading} (Table 1)\n",
+        *results["table"],
+        *results["comparison"],
+        *results["failures"],
+        *returns,
         "## Stability: where the critics fail\n",
         "Per dataset and algorithm: runs whose mean Q left the range the rewards allow, the "
         "first such step, the largest mean Q (median over runs), the ensemble's spread at the "
@@ -255,11 +353,10 @@ def write_report(
         "the data) and the share of samples with the BC term on (all at the last log row). [stability.md](stability.md); the results as CSV: "
         "[runs.csv](runs.csv), "
         "[evaluations.csv](evaluations.csv).\n",
-        stability,
+        results["stability"],
         "## Aggregate statistics\n",
-        *([_warning(thin)] if thin else []),
-        aggregate,
-        "![Performance profiles](profiles.png)\n",
+        *([_warning(thin)] if thin and metric is SCORE else []),
+        *aggregate,
         "## Learning curves (Figure 1)\n",
         "![Learning curves](curves.png)\n",
         *(["## Ablations (Figures 2-4)\n", *ablations] if ablations else []),
@@ -269,7 +366,7 @@ def write_report(
         "![Runtime](runtime.png)\n",
     ]
     write("report.md", "\n".join(sections))
-    write("report.html", report_page(sections, table))
+    write("report.html", report_page(sections, tables))
     return paths
 
 
@@ -335,8 +432,10 @@ def _markdown_table_html(text: str) -> str:
     return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
 
 
-def report_page(sections: list[str], table: pd.DataFrame) -> str:
-    """``report.md``'s content as one styled page: tables as tables, figures as SVG."""
+def report_page(sections: list[str], tables: list[pd.DataFrame]) -> str:
+    """``report.md``'s content as one styled page: tables as tables (score tables, ``tables``,
+    in their own renderer), figures as SVG."""
+    score_tables = {to_markdown(t).strip(): to_html(t) for t in tables}
     parts = []
     blocks = [b.strip() for section in sections[1:] for b in re.split(r"\n\s*\n", section)]
     for text in filter(None, blocks):  # sections[0] is report.md's title
@@ -346,9 +445,7 @@ def report_page(sections: list[str], table: pd.DataFrame) -> str:
         elif text.startswith("!["):
             parts.extend(_figures_html(text))
         elif text.startswith("|"):
-            header = text.splitlines()[0]
-            table1 = header.startswith("| Dataset |") and "| Algorithm |" not in header
-            parts.append(to_html(table) if table1 else _markdown_table_html(text))
+            parts.append(score_tables.get(text) or _markdown_table_html(text))
         elif text.startswith("**Warning:**"):
             parts.append(f'<p class="warning">{_inline(text)}</p>')
         else:

@@ -18,6 +18,7 @@ status, steps, wall_time_s, steps_per_s, final_score``), and ``evaluations``, on
 
 from __future__ import annotations
 
+import dataclasses
 import html
 import math
 
@@ -38,6 +39,29 @@ from eabc.experiments.stats import STATISTICS, _aggregates_batched, stratified_b
 AVERAGE = "Average"
 MIN_RUNS = 3
 """Fewer runs per dataset than this and a bootstrap interval or a std says little: flagged."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Metric:
+    """What a report's numbers are: each run's final value (a ``runs`` column), the curve it
+    comes from (an ``evaluations`` column) and their names in the text."""
+
+    column: str
+    curve: str
+    name: str
+    """A short name for column headers and sentences (``score``, ``return``)."""
+    title: str
+    """What a table caption says the numbers are."""
+
+
+SCORE = Metric("final_score", "score", "score", "D4RL-normalised score")
+RETURN = Metric(
+    "final_return",
+    "return_mean",
+    "return",
+    "Raw return: these runs have no reference scores, so no D4RL-normalised score",
+)
+"""For runs on data without reference returns (a user's own file): returns as they were."""
 
 
 # ----------------------------------------------------------------------------------------------
@@ -249,11 +273,11 @@ def aggregate_to_markdown(table: pd.DataFrame, alpha: float = 0.05) -> str:
     return "\n".join(lines) + "\n" + note
 
 
-def stability_table(runs: pd.DataFrame) -> pd.DataFrame:
+def stability_table(runs: pd.DataFrame, metric: str = "final_score") -> pd.DataFrame:
     """Where each algorithm's critics fail, dataset by dataset (the study's diagnostics).
 
-    One row per dataset and label: ``runs``; ``score`` (mean of the final scores) and
-    ``score_std``; ``out_of_range`` (runs whose mean Q left the value range the rewards allow);
+    One row per dataset and label: ``runs``; ``score`` (mean of the runs' ``metric``: final
+    scores, or final returns) and ``score_std``; ``out_of_range`` (runs whose mean Q left the value range the rewards allow);
     ``first_out_of_range_step`` (the earliest over its runs); ``q_mean_max`` (median over runs of
     the largest logged mean Q); ``policy_spread`` (median of ``policy_q_std / |q_mean|`` at the
     last log row: how much of the value ``mean - std`` subtracts at the policy's actions);
@@ -269,7 +293,7 @@ def stability_table(runs: pd.DataFrame) -> pd.DataFrame:
         q_last = numeric("q_mean_last")
         spread = numeric("policy_q_std_last")
         data_spread = numeric("q_ensemble_std_last")
-        scores = numeric("final_score").dropna()
+        scores = numeric(metric).dropna()
         rows.append(
             {
                 "dataset": dataset,
@@ -298,12 +322,12 @@ def stability_table(runs: pd.DataFrame) -> pd.DataFrame:
     return table.sort_values(["_d", "_l"]).drop(columns=["_d", "_l"]).reset_index(drop=True)
 
 
-def stability_to_markdown(table: pd.DataFrame) -> str:
+def stability_to_markdown(table: pd.DataFrame, name: str = "score") -> str:
     def fmt(value, pattern):
         return "" if is_missing(value) or not np.isfinite(value) else pattern.format(value)
 
     lines = [
-        "| Dataset | Algorithm | runs | score | out of range | first step out | max mean Q | "
+        f"| Dataset | Algorithm | runs | {name} | out of range | first step out | max mean Q | "
         "spread at pi | spread ratio | BC fraction |",
         "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
@@ -346,7 +370,11 @@ def _at_onset(group: pd.DataFrame) -> tuple[pd.Series, pd.Series]:
 
 
 def failure_table(
-    runs: pd.DataFrame, published: str, fix: str, baseline: str | None = None
+    runs: pd.DataFrame,
+    published: str,
+    fix: str,
+    baseline: str | None = None,
+    metric: str = "final_score",
 ) -> pd.DataFrame:
     """Published EABC (label ``published``) beside the fix (label ``fix``), one row per dataset
     that has runs of both: for each, ``{side}_runs``, ``{side}_score`` (mean final score),
@@ -355,7 +383,8 @@ def failure_table(
     largest mean Q), ``{side}_spread`` and ``{side}_ratio`` (medians of :func:`_at_onset`: the
     spread at the policy's actions as the runaway began, or at the end of a run in range),
     ``{side}_bc`` (median BC fraction at the last row); and
-    ``baseline_score`` (the mean final score of label ``baseline``, when given and run)."""
+    ``baseline_score`` (the mean final score of label ``baseline``, when given and run); the
+    scores are the runs' ``metric`` (final scores, or final returns)."""
     runs = labelled(runs)
     labels = set(runs["label"])
     for name, label in (("published", published), ("fix", fix)):
@@ -371,14 +400,14 @@ def failure_table(
             continue
         row = {"dataset": dataset}
         if baseline is not None:
-            scores = pd.to_numeric(here.loc[here["label"] == baseline, "final_score"], "coerce")
+            scores = pd.to_numeric(here.loc[here["label"] == baseline, metric], "coerce")
             row["baseline_score"] = scores.mean()
         for side, group in sides.items():
             out = pd.to_numeric(group["q_out_of_range_step"], errors="coerce")
             spread, ratio = _at_onset(group)
             row |= {
                 f"{side}_runs": len(group),
-                f"{side}_score": pd.to_numeric(group["final_score"], errors="coerce").mean(),
+                f"{side}_score": pd.to_numeric(group[metric], errors="coerce").mean(),
                 f"{side}_out_of_range": int(out.notna().sum()),
                 f"{side}_first_out": out.min(),
                 f"{side}_q_max": pd.to_numeric(group["q_mean_max"], errors="coerce").median(),
@@ -392,13 +421,15 @@ def failure_table(
     return pd.DataFrame(rows)
 
 
-def failure_to_markdown(table: pd.DataFrame, published: str, fix: str, baseline: str | None) -> str:
+def failure_to_markdown(
+    table: pd.DataFrame, published: str, fix: str, baseline: str | None, name: str = "score"
+) -> str:
     def fmt(value, pattern):
         return "" if is_missing(value) or not np.isfinite(value) else pattern.format(value)
 
-    side_columns = ["score", "out of range", "first step out", "max mean Q", "spread at pi",
+    side_columns = [name, "out of range", "first step out", "max mean Q", "spread at pi",
                     "spread ratio", "BC fraction"]  # fmt: skip
-    head = ["Dataset", *([f"{display_name(baseline)} score"] if baseline else [])]
+    head = ["Dataset", *([f"{display_name(baseline)} {name}"] if baseline else [])]
     for label in (published, fix):
         head += [f"{display_name(label)}: {c}" if i == 0 else c for i, c in enumerate(side_columns)]
     lines = ["| " + " | ".join(head) + " |", "|---" + "|---:" * (len(head) - 1) + "|"]
@@ -417,7 +448,7 @@ def failure_to_markdown(table: pd.DataFrame, published: str, fix: str, baseline:
         lines.append("| " + " | ".join(cells) + " |")
     note = (
         f"\n{display_name(published)} beside {display_name(fix)}, dataset by dataset: mean final "
-        "score; runs whose mean Q left the value range the rewards allow, and the earliest step "
+        f"{name}; runs whose mean Q left the value range the rewards allow, and the earliest step "
         "it did; the largest mean Q (median over runs); the ensemble's spread at the policy's "
         "actions relative to |mean Q| and over its spread at the data's actions (the spread "
         "ratio: above 1 the policy acts where the ensemble is less sure than on the data), both "
