@@ -183,7 +183,7 @@ class Stop(Exception):
 def test_trainer_trains_on_the_preprocessed_data(tmp_path, pendulum_dataset, monkeypatch, algo):
     seen = {}
 
-    def capture(dataset, normalizer):
+    def capture(dataset, normalizer, *args):
         seen["rewards"] = dataset.rewards
         raise Stop
 
