@@ -6,6 +6,7 @@ from __future__ import annotations
 import itertools
 
 import gymnasium as gym
+import mujoco
 import numpy as np
 import pytest
 
@@ -171,13 +172,49 @@ def test_maze_env_options_and_collection_mode():
         env.reset(options={"goal_cell": (0, 0)})
 
 
-def test_d4rl_ant_physics():
+def test_the_ant_is_d4rls_derived_from_gymnasiums_ant_xml():
+    """The model built from Gymnasium's ant.xml has D4RL's physics; every number below is D4RL's
+    ant.xml as MuJoCo compiles it (a policy trained on this model relies on each of them)."""
+    model = antmaze.AntDirectionEnv().model
+    assert model.opt.timestep == 0.02 and model.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4
+    assert antmaze.FRAME_SKIP == 5 and model.opt.cone == mujoco.mjtCone.mjCONE_PYRAMIDAL
+    np.testing.assert_array_equal(model.opt.gravity, [0.0, 0.0, -9.81])
+    # motors in D4RL's order, gear 1 and ctrlrange +-30: actions in [-1, 1] are scaled by 30
+    joints = [model.joint(model.actuator_trnid[i, 0]).name for i in range(model.nu)]
+    assert joints == [f"{part}_{leg}" for leg in (4, 1, 2, 3) for part in ("hip", "ankle")]
+    np.testing.assert_array_equal(model.actuator_gear[:, 0], np.ones(8))
+    np.testing.assert_array_equal(model.actuator_ctrlrange, np.tile([-30.0, 30.0], (8, 1)))
+    # joints: hips +-30 degrees, ankles 30-70 degrees (signs per leg), damping and armature 1
+    hip, ankle = np.deg2rad([-30, 30]), np.deg2rad([30, 70])
+    np.testing.assert_allclose(model.jnt_range[1:], [hip, ankle, hip, -ankle[::-1], hip,
+                                                     -ankle[::-1], hip, ankle], rtol=1e-15)  # fmt: skip
+    np.testing.assert_array_equal(model.dof_damping, [0.0] * 6 + [1.0] * 8)
+    np.testing.assert_array_equal(model.dof_armature, [0.0] * 6 + [1.0] * 8)
+    # density 5: a torso sphere of radius 0.25 weighs 4/3 pi 0.25^3 * 5
+    assert model.body_mass[1] == pytest.approx(4 / 3 * np.pi * 0.25**3 * 5, rel=1e-12)
+    assert model.body_mass.sum() == pytest.approx(0.9108800827073915, rel=1e-12)
+    np.testing.assert_allclose(model.body_mass[[2, 4]], [0.03915775372846671, 0.06759220453268026])
+    assert model.qpos0[2] == 0.75  # the torso starts 0.75 m up
+    # contacts: D4RL's geom defaults (MuJoCo's solimp would be 0.9 0.95 0.001)
+    ant = [g for g in range(model.ngeom) if model.geom(g).name != "floor"]
+    np.testing.assert_array_equal(model.geom_friction[ant], np.tile([1.0, 0.5, 0.5], (len(ant), 1)))
+    np.testing.assert_array_equal(model.geom_solref[ant], np.tile([0.02, 1.0], (len(ant), 1)))
+    solimp = np.tile([0.8, 0.8, 0.01, 0.5, 2.0], (len(ant), 1))
+    np.testing.assert_array_equal(model.geom_solimp[ant], solimp)
+    np.testing.assert_array_equal(model.geom_margin[ant], np.full(len(ant), 0.01))
+    assert (model.geom_condim == 3).all() and (model.geom_conaffinity[ant] == 0).all()
     env = antmaze.AntDirectionEnv()
-    assert env.dt == pytest.approx(0.1) and env.model.opt.integrator == 1  # RK4
-    np.testing.assert_array_equal(env.model.actuator_ctrlrange, np.tile([-30.0, 30.0], (8, 1)))
+    assert env.dt == pytest.approx(0.1)
     env.reset(seed=0)
     env.step(np.full(8, 5.0))  # out-of-range actions are clipped to [-1, 1], i.e. +-30
     np.testing.assert_array_equal(env.data.ctrl, np.full(8, 30.0))
+
+
+def test_an_unexpected_gymnasium_ant_xml_is_refused(tmp_path, monkeypatch):
+    (tmp_path / "ant.xml").write_text('<mujoco model="ant"><worldbody/></mujoco>')
+    monkeypatch.setattr(antmaze, "gymnasium_ant_xml", lambda: tmp_path / "ant.xml")
+    with pytest.raises(RuntimeError, match="Gymnasium's ant changed"):
+        antmaze.model_xml()
 
 
 def test_direction_env_rewards_velocity_along_its_direction():

@@ -4,7 +4,9 @@ direction-following policy trains on.
 Both run D4RL's ant (``d4rl/locomotion/assets/ant.xml``: timestep 0.02 s with RK4, 5 substeps, so
 0.1 s per step; motors clipped to +-30, reached by actions in [-1, 1] as D4RL's
 ``NormalizedBoxEnv`` scales them) in MuJoCo's own Python bindings, walls placed as D4RL places
-them (:mod:`eabc.data.mazes`). Why not Gymnasium-Robotics' AntMaze: see docs/datasets.md.
+them (:mod:`eabc.data.mazes`). The model is built at run time from the ``ant.xml`` that the
+installed Gymnasium ships, edited to D4RL's values (:data:`D4RL_EDITS`). Why not
+Gymnasium-Robotics' AntMaze: see docs/datasets.md.
 
 Observations (float64):
 
@@ -21,94 +23,32 @@ Observations (float64):
 
 from __future__ import annotations
 
+from pathlib import Path
+from xml.etree import ElementTree
+
 import gymnasium as gym
 import numpy as np
 
 from eabc.data import mazes
 from eabc.data.mazes import Maze
 
-# D4RL's ant.xml (Apache-2.0; from rllab through efficient-hrl), as D4RL's AntMaze loads it, less
-# the compiler's coordinate="local" that MuJoCo >= 2.3.3 rejects (local is now its only mode).
-ANT_XML = """<mujoco model="ant">
-  <compiler inertiafromgeom="true" angle="degree"/>
-  <option timestep="0.02" integrator="RK4"/>
-  <custom><numeric name="init_qpos" data="0.0 0.0 0.55 1.0 0.0 0.0 0.0 0.0 1.0 0.0 -1.0 0.0 -1.0 0.0 1.0"/></custom>
-  <default>
-    <joint limited="true" armature="1" damping="1"/>
-    <geom condim="3" conaffinity="0" margin="0.01" friction="1 0.5 0.5" solref=".02 1" solimp=".8 .8 .01" rgba="0.8 0.6 0.4 1" density="5.0"/>
-  </default>
-  <asset>
-    <texture type="skybox" builtin="gradient" width="100" height="100" rgb1="1 1 1" rgb2="0 0 0"/>
-    <texture name="texgeom" type="cube" builtin="flat" mark="cross" width="127" height="1278" rgb1="0.8 0.6 0.4" rgb2="0.8 0.6 0.4" markrgb="1 1 1" random="0.01"/>
-    <texture name="texplane" type="2d" builtin="checker" rgb1="0.2 0.3 0.4" rgb2="0.1 0.2 0.3" width="100" height="100"/>
-    <material name="MatPlane" texture="texplane" shininess="1" texrepeat="60 60" specular="1" reflectance="0.0"/>
-    <material name="geom" texture="texgeom" texuniform="true"/>
-  </asset>
-  <worldbody>
-    <light directional="true" cutoff="100" exponent="1" diffuse="1 1 1" specular=".1 .1 .1" pos="0 0 1.3" dir="-0 0 -1.3"/>
-    <geom name="floor" pos="0 0 0" size="40 40 40" type="plane" conaffinity="1" rgba="0.8 0.9 0.8 1" condim="3" material="MatPlane"/>
-    <body name="torso" pos="0 0 0.75">
-      <geom name="torso_geom" type="sphere" size="0.25" pos="0 0 0" rgba="0.3 0.9 0.5 1"/>
-      <joint name="root" type="free" limited="false" pos="0 0 0" axis="0 0 1" margin="0.01" armature="0" damping="0"/>
-      <body name="front_left_leg" pos="0 0 0">
-        <geom name="aux_1_geom" type="capsule" size="0.08" fromto="0.0 0.0 0.0 0.2 0.2 0.0"/>
-        <body name="aux_1" pos="0.2 0.2 0">
-          <joint name="hip_1" type="hinge" pos="0.0 0.0 0.0" axis="0 0 1" range="-30 30"/>
-          <geom name="left_leg_geom" type="capsule" size="0.08" fromto="0.0 0.0 0.0 0.2 0.2 0.0"/>
-          <body pos="0.2 0.2 0">
-            <joint name="ankle_1" type="hinge" pos="0.0 0.0 0.0" axis="-1 1 0" range="30 70"/>
-            <geom name="left_ankle_geom" type="capsule" size="0.08" fromto="0.0 0.0 0.0 0.4 0.4 0.0"/>
-          </body>
-        </body>
-      </body>
-      <body name="front_right_leg" pos="0 0 0">
-        <geom name="aux_2_geom" type="capsule" size="0.08" fromto="0.0 0.0 0.0 -0.2 0.2 0.0"/>
-        <body name="aux_2" pos="-0.2 0.2 0">
-          <joint name="hip_2" type="hinge" pos="0.0 0.0 0.0" axis="0 0 1" range="-30 30"/>
-          <geom name="right_leg_geom" type="capsule" size="0.08" fromto="0.0 0.0 0.0 -0.2 0.2 0.0"/>
-          <body pos="-0.2 0.2 0">
-            <joint name="ankle_2" type="hinge" pos="0.0 0.0 0.0" axis="1 1 0" range="-70 -30"/>
-            <geom name="right_ankle_geom" type="capsule" size="0.08" fromto="0.0 0.0 0.0 -0.4 0.4 0.0"/>
-          </body>
-        </body>
-      </body>
-      <body name="back_leg" pos="0 0 0">
-        <geom name="aux_3_geom" type="capsule" size="0.08" fromto="0.0 0.0 0.0 -0.2 -0.2 0.0"/>
-        <body name="aux_3" pos="-0.2 -0.2 0">
-          <joint name="hip_3" type="hinge" pos="0.0 0.0 0.0" axis="0 0 1" range="-30 30"/>
-          <geom name="back_leg_geom" type="capsule" size="0.08" fromto="0.0 0.0 0.0 -0.2 -0.2 0.0"/>
-          <body pos="-0.2 -0.2 0">
-            <joint name="ankle_3" type="hinge" pos="0.0 0.0 0.0" axis="-1 1 0" range="-70 -30"/>
-            <geom name="third_ankle_geom" type="capsule" size="0.08" fromto="0.0 0.0 0.0 -0.4 -0.4 0.0"/>
-          </body>
-        </body>
-      </body>
-      <body name="right_back_leg" pos="0 0 0">
-        <geom name="aux_4_geom" type="capsule" size="0.08" fromto="0.0 0.0 0.0 0.2 -0.2 0.0"/>
-        <body name="aux_4" pos="0.2 -0.2 0">
-          <joint name="hip_4" type="hinge" pos="0.0 0.0 0.0" axis="0 0 1" range="-30 30"/>
-          <geom name="rightback_leg_geom" type="capsule" size="0.08" fromto="0.0 0.0 0.0 0.2 -0.2 0.0"/>
-          <body pos="0.2 -0.2 0">
-            <joint name="ankle_4" type="hinge" pos="0.0 0.0 0.0" axis="1 1 0" range="30 70"/>
-            <geom name="fourth_ankle_geom" type="capsule" size="0.08" fromto="0.0 0.0 0.0 0.4 -0.4 0.0"/>
-          </body>
-        </body>
-      </body>
-    </body>
-{walls}
-  </worldbody>
-  <actuator>
-    <motor joint="hip_4" ctrlrange="-30.0 30.0" ctrllimited="true"/>
-    <motor joint="ankle_4" ctrlrange="-30.0 30.0" ctrllimited="true"/>
-    <motor joint="hip_1" ctrlrange="-30.0 30.0" ctrllimited="true"/>
-    <motor joint="ankle_1" ctrlrange="-30.0 30.0" ctrllimited="true"/>
-    <motor joint="hip_2" ctrlrange="-30.0 30.0" ctrllimited="true"/>
-    <motor joint="ankle_2" ctrlrange="-30.0 30.0" ctrllimited="true"/>
-    <motor joint="hip_3" ctrlrange="-30.0 30.0" ctrllimited="true"/>
-    <motor joint="ankle_3" ctrlrange="-30.0 30.0" ctrllimited="true"/>
-  </actuator>
-</mujoco>
-"""
+D4RL_EDITS: dict[str, dict[str, str | None]] = {
+    # XPath in Gymnasium's ant.xml -> the attributes D4RL's ant.xml gives it (None: remove).
+    "./compiler": {"coordinate": None},  # MuJoCo >= 2.3.3 rejects it; "local" is its only mode
+    "./option": {"timestep": "0.02"},  # Gymnasium: 0.01 (RK4 in both)
+    "./default/geom": {"solref": ".02 1", "solimp": ".8 .8 .01"},  # Gymnasium: MuJoCo's defaults
+    "./asset/texture[@name='texplane']": {"rgb1": "0.2 0.3 0.4", "rgb2": "0.1 0.2 0.3"},
+    "./asset/material[@name='MatPlane']": {"reflectance": "0.0"},
+    ".//body[@name='torso']/geom[@name='torso_geom']": {"rgba": "0.3 0.9 0.5 1"},
+    ".//body[@name='torso']/joint[@name='root']": {"axis": "0 0 1"},
+    "./actuator/motor": {"gear": None, "ctrlrange": "-30.0 30.0"},  # Gymnasium: gear 150, +-1
+}
+"""Where D4RL's ``d4rl/locomotion/assets/ant.xml`` (rllab's ant through efficient-hrl) differs from
+Gymnasium's ``envs/mujoco/assets/ant.xml``; Gymnasium's also has a tracking camera, which D4RL's
+lacks. Bodies, geoms, joints (ranges, damping 1, armature 1), density 5, friction, margins and the
+torso's start height 0.75 are the same in both. With these edits the compiled model equals the one
+of D4RL's file in every field (checked field by field and by bit-identical rollouts when the
+embedded copy was replaced; tests/test_antmaze.py pins the physical values)."""
 FRAME_SKIP = 5
 """Physics steps per environment step (D4RL's AntEnv)."""
 TORQUE_LIMIT = 30.0
@@ -120,18 +60,45 @@ HEALTHY_Z = (0.2, 1.0)
 OBS_DIM = 29
 
 
+def gymnasium_ant_xml() -> Path:
+    """Gymnasium's own ``ant.xml``, shipped in the installed package."""
+    return Path(gym.__file__).parent / "envs" / "mujoco" / "assets" / "ant.xml"
+
+
 def model_xml(maze: Maze | None = None) -> str:
-    """The ant's MJCF, with ``maze``'s walls as D4RL's MazeEnv adds them (none: the open plane)."""
-    walls = []
+    """D4RL's ant as MJCF: Gymnasium's ``ant.xml`` edited to D4RL's (:data:`D4RL_EDITS`), with
+    ``maze``'s walls as D4RL's ``MazeEnv`` adds them (none: the open plane)."""
+    root = ElementTree.parse(gymnasium_ant_xml()).getroot()
+    for path, attributes in D4RL_EDITS.items():
+        elements = root.findall(path)
+        if not elements:
+            raise RuntimeError(f"{gymnasium_ant_xml()} has no {path}: Gymnasium's ant changed")
+        for element in elements:
+            for key, value in attributes.items():
+                if value is None:
+                    element.attrib.pop(key, None)
+                else:
+                    element.set(key, value)
+    torso = root.find(".//body[@name='torso']")
+    for camera in torso.findall("camera"):
+        torso.remove(camera)
+    worldbody = root.find("worldbody")
     half, height = 0.5 * mazes.SCALING, WALL_HEIGHT / 2 * mazes.SCALING
     for cell in maze.wall_cells if maze is not None else []:
         x, y = maze.cell_to_xy(cell)
-        walls.append(
-            f'    <geom name="block_{cell[0]}_{cell[1]}" pos="{x:f} {y:f} {height:f}" '
-            f'size="{half:f} {half:f} {height:f}" type="box" material="" contype="1" '
-            f'conaffinity="1" rgba="0.7 0.5 0.3 1.0"/>'
+        ElementTree.SubElement(
+            worldbody,
+            "geom",
+            name=f"block_{cell[0]}_{cell[1]}",
+            pos=f"{x:f} {y:f} {height:f}",
+            size=f"{half:f} {half:f} {height:f}",
+            type="box",
+            material="",
+            contype="1",
+            conaffinity="1",
+            rgba="0.7 0.5 0.3 1.0",
         )
-    return ANT_XML.replace("{walls}", "\n".join(walls))
+    return ElementTree.tostring(root, encoding="unicode")
 
 
 class _Ant(gym.Env):
