@@ -46,6 +46,13 @@ def make_env(env_id: str):
 
 def check_spaces(env, dataset: Dataset) -> None:
     """Raise a clear error if the dataset cannot have come from ``env``."""
+    antmaze = tasks.antmaze_env_ids()
+    if dataset.env_id in antmaze and env.spec.id not in antmaze:
+        raise DatasetError(
+            f"{dataset.name} is AntMaze data, evaluated on {dataset.env_id}; {env.spec.id} is "
+            "another task: leave --env out (or pass --env one of the AntMaze environments, "
+            f"{', '.join(sorted(antmaze))})"
+        )
     obs_shape, act_space = env.observation_space.shape, env.action_space
     if obs_shape != (dataset.obs_dim,):
         raise DatasetError(

@@ -218,8 +218,8 @@ def train_plan(cmd: Train) -> dict[str, str]:
 def _task_env(dataset_name: str) -> str | None:
     from eabc.data import tasks  # noqa: PLC0415
 
-    task = tasks.parse_task(dataset_name)
-    return tasks.ENVS[task[0]].env_id if task else None
+    info = tasks.env_info(tasks.parse_task(dataset_name))
+    return info.env_id if info else None
 
 
 def _short(value) -> str:

@@ -60,6 +60,9 @@ class Dataset:
     """Return of a random policy, for normalised scores."""
     ref_max_score: float | None = None
     """Return of an expert policy, for normalised scores."""
+    reward_offset: float | None = None
+    """Added to every reward for training, by every algorithm (AntMaze: -1, the ``r - 1`` IQL and
+    CORL train on); None: train on the rewards as stored, with the algorithm's own preprocessing."""
     metadata: dict[str, Any] = dataclasses.field(default_factory=dict)
 
     def __post_init__(self):
@@ -123,6 +126,13 @@ class Dataset:
         ends[-1] = True
         episode = np.concatenate([[0], np.cumsum(ends)[:-1]])
         return np.bincount(episode, weights=self.rewards).astype(np.float64)
+
+    def training_view(self) -> Dataset:
+        """The transitions with :attr:`reward_offset` added to the rewards (itself if None)."""
+        if self.reward_offset is None:
+            return self
+        rewards = (self.rewards.astype(np.float64) + self.reward_offset).astype(np.float32)
+        return dataclasses.replace(self, rewards=rewards, reward_offset=None)
 
     def normalized_score(self, episode_return: float) -> float | None:
         """D4RL-normalised score of a return, or None without reference returns."""

@@ -110,7 +110,7 @@ def from_arrays(arrays: dict[str, np.ndarray], attrs: dict, default_name: str) -
     if "next_observations" not in arrays:
         arrays = _with_next_observations(arrays)
     task = tasks.parse_task(name)
-    env = tasks.ENVS.get(task[0]) if task else None
+    env = tasks.env_info(task)
     metadata = json.loads(attrs["metadata"]) if "metadata" in attrs else {}
     return Dataset(
         **{k: arrays[k] for k in (*REQUIRED, "timeouts", "next_observations")},
@@ -118,6 +118,7 @@ def from_arrays(arrays: dict[str, np.ndarray], attrs: dict, default_name: str) -
         env_id=str(attrs.get("env_id", env.env_id if env else "")) or None,
         ref_min_score=_float(attrs.get("ref_min_score", env.ref_min_score if env else None)),
         ref_max_score=_float(attrs.get("ref_max_score", env.ref_max_score if env else None)),
+        reward_offset=_float(attrs.get("reward_offset", tasks.reward_offset(task))),
         metadata=metadata,
     )
 
@@ -148,6 +149,8 @@ def save_npz(dataset: Dataset, path: str | os.PathLike) -> None:
     attrs = {"name": dataset.name, "env_id": dataset.env_id or ""}
     if dataset.ref_min_score is not None:
         attrs |= {"ref_min_score": dataset.ref_min_score, "ref_max_score": dataset.ref_max_score}
+    if dataset.reward_offset is not None:
+        attrs["reward_offset"] = dataset.reward_offset
     arrays = {k: getattr(dataset, k) for k in ("observations", "actions", "rewards", "terminals")}
     arrays |= {"timeouts": dataset.timeouts, "next_observations": dataset.next_observations}
     np.savez(path, **arrays, **{k: np.asarray(v) for k, v in attrs.items()})

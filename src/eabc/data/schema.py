@@ -11,8 +11,8 @@ The one place for the rules of dataset files (``.npz`` and D4RL-layout HDF5):
   real size (and the zip directory's sizes against the file's), or an HDF5 dataset's storage,
   so that a 2 KB file whose header claims a 60 TB array is refused before anything is allocated;
 - all of them together fit in this machine's memory;
-- the attributes (:data:`ATTRIBUTES`) have their types: names are text, reference scores finite
-  numbers, ``metadata`` a JSON object.
+- the attributes (:data:`ATTRIBUTES`) have their types: names are text, reference scores and the
+  reward offset finite numbers, ``metadata`` a JSON object.
 
 Each refusal is a :class:`~eabc.data.dataset.DatasetError` of one line that names the file, the
 key and what to do. What the values must be (equal lengths, no NaN/inf, flags 0 or 1) is the
@@ -50,7 +50,7 @@ ARRAYS = {
 """The arrays a dataset file may hold: ``rows`` are ``[N]`` or ``[N, dim]``, ``column`` ``[N]``
 or ``[N, 1]``."""
 ATTRIBUTES = {"name": str, "env_id": str, "metadata": str, "ref_min_score": float,
-              "ref_max_score": float}  # fmt: skip
+              "ref_max_score": float, "reward_offset": float}  # fmt: skip
 """The single values a dataset file may hold beside its arrays, and their types."""
 NUMBER_KINDS = {"f": "float", "i": "int", "u": "unsigned int", "b": "bool"}
 DEFLATE_RATIO = 1032
@@ -268,7 +268,7 @@ def attributes(path: Path, raw: dict[str, Any]) -> dict[str, Any]:
             )
         if kind is float and not math.isfinite(out[key]):
             raise DatasetError(
-                f"{path}: attribute {key} is {out[key]}; a reference score is a finite return: "
+                f"{path}: attribute {key} is {out[key]}; it must be a finite number: "
                 "fix or remove it"
             )
     if "metadata" in out:

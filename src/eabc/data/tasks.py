@@ -1,4 +1,5 @@
-"""What we know about D4RL's MuJoCo tasks: environments, reference returns, and the paper's p per dataset."""
+"""What we know about D4RL's tasks: environments, reference returns, training conventions and the
+paper's p per dataset (MuJoCo locomotion, Table 3; AntMaze, Table 5)."""
 
 from __future__ import annotations
 
@@ -25,6 +26,20 @@ ENVS: dict[str, EnvInfo] = {
 
 KINDS = ("random", "medium", "expert", "medium-replay", "medium-expert")
 
+ANTMAZE_ENVS: dict[str, EnvInfo] = {
+    # D4RL's reference scores for AntMaze are 0 and 1: the normalised score is 100 x success rate.
+    "umaze": EnvInfo("eabc/AntMaze-UMaze-v0", 0.0, 1.0),
+    "medium": EnvInfo("eabc/AntMaze-Medium-v0", 0.0, 1.0),
+    "large": EnvInfo("eabc/AntMaze-Large-v0", 0.0, 1.0),
+}
+"""The evaluation environment of each AntMaze maze (:mod:`eabc.data.antmaze`)."""
+ANTMAZE_KINDS = ("umaze", "umaze-diverse", "medium-play", "medium-diverse", "large-play",
+                 "large-diverse")  # fmt: skip
+"""D4RL's six AntMaze datasets, ``antmaze-KIND``: the maze, then how starts and goals were chosen."""
+REWARD_OFFSET: dict[str, float] = {"antmaze": -1.0}
+"""Added to the stored rewards for training, per environment: AntMaze's sparse 0/1 rewards become
+-1/0 as IQL and CORL train on them (``eabc.data.mazes.training_rewards``)."""
+
 # Table 3 of the paper: the best confidence level p per (environment, dataset kind).
 CONFIDENCE_LEVEL: dict[tuple[str, str], float] = {
     ("halfcheetah", "expert"): 0.5,
@@ -42,6 +57,13 @@ CONFIDENCE_LEVEL: dict[tuple[str, str], float] = {
     ("halfcheetah", "random"): 0.0,
     ("hopper", "random"): 0.0,
     ("walker2d", "random"): 0.95,
+    # Table 5 (AntMaze).
+    ("antmaze", "umaze"): 1.0,
+    ("antmaze", "umaze-diverse"): 0.5,
+    ("antmaze", "medium-play"): 1.0,
+    ("antmaze", "medium-diverse"): 0.75,
+    ("antmaze", "large-play"): 1.0,
+    ("antmaze", "large-diverse"): 1.0,
 }
 
 # SPEC section 5: q of the authors' earlier quantile BC rule per (environment, dataset kind).
@@ -67,15 +89,42 @@ _NAME = re.compile(
     r"(?P<env>hopper|halfcheetah|walker2d|ant)[-_/]"
     r"(?P<kind>medium[-_]replay|medium[-_]expert|random|medium|expert)(?![a-z])"
 )
+_ANTMAZE = re.compile(
+    r"antmaze[-_/](?P<maze>umaze|medium|large)(?:[-_](?P<family>diverse|play))?(?![a-z])"
+)
 
 
 def parse_task(text: str) -> tuple[str, str] | None:
     """Find ``(env, kind)`` in a dataset name, file name or Minari id, e.g.
-    ``hopper_medium_replay-v2.hdf5``, ``mujoco/hopper/medium-v0``, ``eabc/hopper/medium-v0``."""
-    match = _NAME.search(text.lower())
+    ``hopper_medium_replay-v2.hdf5``, ``mujoco/hopper/medium-v0``, ``eabc/hopper/medium-v0``;
+    AntMaze's are ``("antmaze", "medium-play")`` (``antmaze-medium-play-v2``,
+    ``D4RL/antmaze/medium-play-v1``)."""
+    text = text.lower()
+    antmaze = _ANTMAZE.search(text)
+    if antmaze is not None:
+        return "antmaze", "-".join(p for p in (antmaze["maze"], antmaze["family"]) if p)
+    match = _NAME.search(text)
     if match is None:
         return None
     return match["env"], match["kind"].replace("_", "-")
+
+
+def env_info(task: tuple[str, str] | None) -> EnvInfo | None:
+    """The evaluation environment and reference scores of a task (None if unknown)."""
+    if task is None:
+        return None
+    if task[0] == "antmaze":
+        return ANTMAZE_ENVS.get(task[1].split("-")[0])
+    return ENVS.get(task[0])
+
+
+def antmaze_env_ids() -> set[str]:
+    return {info.env_id for info in ANTMAZE_ENVS.values()}
+
+
+def reward_offset(task: tuple[str, str] | None) -> float | None:
+    """What training adds to the task's rewards (None: train on them as they are)."""
+    return None if task is None else REWARD_OFFSET.get(task[0])
 
 
 def default_confidence_level(task: tuple[str, str] | None) -> float | None:

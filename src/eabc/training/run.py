@@ -538,8 +538,13 @@ def _settings_text(algorithm: Algorithm, agent_config) -> str:
 
 
 def prepared(algorithm: Algorithm, dataset: Dataset) -> Dataset:
-    """The data as the algorithm trains on it (e.g. IQL's reward scaling); the run keeps the
-    dataset as loaded."""
+    """The data as the algorithm trains on it; the run keeps the dataset as loaded.
+
+    A dataset that carries its own training rewards (``reward_offset``: AntMaze's ``r - 1``) is
+    trained on with them by every algorithm, in place of the algorithm's reward preprocessing (IQL's
+    return scaling is its authors' rule for the MuJoCo tasks; on AntMaze they use ``r - 1``)."""
+    if dataset.reward_offset is not None:
+        return dataset.training_view()
     return dataset if algorithm.preprocess is None else algorithm.preprocess(dataset)
 
 
