@@ -3,6 +3,7 @@ environments (observation layout, goal noise, termination on success, the low-le
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 
 import gymnasium as gym
@@ -11,6 +12,7 @@ import numpy as np
 import pytest
 
 from eabc.data import antmaze, mazes, tasks
+from eabc.data.dataset import DatasetError
 from eabc.data.mazes import MAZES
 
 R, G = "r", "g"
@@ -242,3 +244,141 @@ def test_lowlevel_observation_points_at_the_waypoint():
     low = antmaze.lowlevel_observation(obs, obs[:2] + [3.0, -4.0])
     np.testing.assert_array_equal(low[:27], obs[2:])
     np.testing.assert_allclose(low[27:], [0.6, -0.8])
+
+
+# The waypoint controller and the datasets it makes.
+
+
+@pytest.fixture(scope="module")
+def policy():
+    from eabc.data import antmaze_collect
+
+    return antmaze_collect.load_policy()[0]
+
+
+def test_episode_cells_follow_each_family():
+    from eabc.data.antmaze_collect import episode_cells
+
+    rng = np.random.default_rng(0)
+    for maze in MAZES.values():
+        assert episode_cells(maze, "fixed", rng) == (None, maze.goal_cell)
+        for _ in range(50):
+            start, goal = episode_cells(maze, "diverse", rng)
+            assert start != goal and maze.is_free(start) and maze.is_free(goal)
+            start, goal = episode_cells(maze, "play", rng)
+            assert start in (maze.start_cell, *maze.generation_goals)
+            assert goal in maze.generation_goals and goal != start
+    with pytest.raises(ValueError, match="unknown AntMaze family 'random'"):
+        episode_cells(MAZES["umaze"], "random", rng)
+
+
+def test_the_controller_takes_the_ant_to_the_umaze_goal(policy):
+    """The zoo's low-level policy, steered by the waypoints with the data's action noise, reaches
+    the evaluation goal from the start in most episodes (the card measures 30 per maze)."""
+    from eabc.data import antmaze_collect
+
+    collected = antmaze_collect.collect("umaze", "fixed", 4, seed=0, actor=policy, num_envs=4)
+    assert collected.success.sum() >= 3, collected.summary()
+    assert collected.observations.shape == (4 * 700, 29) and collected.actions.shape == (2800, 8)
+    assert np.abs(collected.actions).max() <= 1.0
+    goals = collected.goals - MAZES["umaze"].goal_xy  # D4RL's goal noise, per episode
+    assert (goals >= 0).all() and (goals < 1.5).all() and len(np.unique(goals)) == 8
+
+
+@pytest.fixture(scope="module")
+def made(tmp_path_factory, policy):
+    """antmaze-umaze-diverse of 1,000 transitions, made twice with seed 3 and once with seed 4
+    (2 environments at a time instead of 10: seconds, not a minute)."""
+    from eabc.data import antmaze_collect, generate
+
+    root = tmp_path_factory.mktemp("antmaze")
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(antmaze_collect, "NUM_ENVS", 2)
+        paths = [
+            generate.make("antmaze-umaze-diverse", root / f"{i}.hdf5", seed=seed, size=1000)
+            for i, seed in enumerate((3, 3, 4))
+        ]
+    return paths
+
+
+def test_made_antmaze_dataset_has_d4rls_layout_rewards_and_settings(made):
+    from eabc.data import antmaze_collect, generate, loaders
+
+    data = loaders.load_file(made[0])
+    assert data.size == 1000 and data.obs_dim == 29 and data.act_dim == 8
+    # the dataset's own settings: evaluation env, reference scores 0 and 1, training on r - 1
+    assert data.env_id == "eabc/AntMaze-UMaze-v0" and data.name == "antmaze-umaze-diverse"
+    assert (data.ref_min_score, data.ref_max_score, data.reward_offset) == (0.0, 1.0, -1.0)
+    np.testing.assert_array_equal(data.training_view().rewards, data.rewards - 1.0)
+    # relabelled: 1 (and a terminal) where the next position is within 0.5 of the evaluation goal
+    goal = MAZES["umaze"].goal_xy + 0.75
+    expected = np.linalg.norm(data.next_observations[:, :2] - goal, axis=1) <= 0.5
+    np.testing.assert_array_equal(data.rewards, expected.astype(np.float32))
+    np.testing.assert_array_equal(data.terminals, expected)
+    # whole 700-step episodes, each ending in a timeout; the budget cuts the second one
+    np.testing.assert_array_equal(np.flatnonzero(data.timeouts), [699, 999])
+    np.testing.assert_array_equal(data.observations[1:700], data.next_observations[:699])
+    assert not np.array_equal(data.observations[700], data.next_observations[699])
+    controller = data.metadata["controller"]
+    assert controller["family"] == "diverse" and controller["episodes"] == 2
+    info = generate.describe_dataset(data)["antmaze"]
+    assert info["reward_1_transitions"] == int(expected.sum())
+    assert info["position_jumps_without_timeout"]["count"] == 0
+    assert info["controller_success_rate"] == controller["success_rate"]
+    assert generate.is_current(made[0], "antmaze-umaze-diverse")
+    # a jump inside an episode is found
+    moved = data.observations.copy()
+    moved[300, :2] += 5.0
+    jumped = antmaze_collect.position_jumps(dataclasses.replace(data, observations=moved))
+    assert jumped["count"] == 2 and jumped["first_rows"] == [299, 300]
+
+
+def test_made_antmaze_dataset_is_deterministic_for_a_seed(made):
+    from eabc.data import loaders
+
+    first, again, other = (loaders.load_file(p) for p in made)
+    assert first.fingerprint() == again.fingerprint() != other.fingerprint()
+
+
+def test_coverage_plot_is_drawn_for_antmaze_data_only(made, tmp_path):
+    from eabc.data import antmaze_collect, loaders
+
+    data = loaders.load_file(made[0])
+    path = antmaze_collect.plot_coverage(data, tmp_path / "cover.png")
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    with pytest.raises(DatasetError, match="draws AntMaze data over its maze"):
+        antmaze_collect.plot_coverage(dataclasses.replace(data, env_id="Hopper-v4"), path)
+
+
+def test_every_algorithm_trains_on_the_datasets_own_rewards(made):
+    """AntMaze's r - 1 replaces an algorithm's reward preprocessing (IQL's return scaling)."""
+    from eabc.agents import get_algorithm
+    from eabc.data import loaders
+    from eabc.training.run import prepared
+
+    data = loaders.load_file(made[0])
+    for algo in ("iql", "td3bc", "eabc"):
+        np.testing.assert_array_equal(prepared(get_algorithm(algo), data).rewards, data.rewards - 1)
+    hopper = dataclasses.replace(data, reward_offset=None)
+    assert prepared(get_algorithm("iql"), hopper).metadata.get("reward_scale") is not None
+
+
+def test_antmaze_names_settings_and_errors(made):
+    from eabc.data import generate, loaders
+    from eabc.evaluation import check_spaces, make_env
+
+    assert tasks.parse_task("antmaze-medium-play-v2") == ("antmaze", "medium-play")
+    assert tasks.parse_task("D4RL/antmaze/umaze-v1") == ("antmaze", "umaze")
+    table5 = {"umaze": 1.0, "umaze-diverse": 0.5, "medium-diverse": 0.75, "medium-play": 1.0,
+              "large-diverse": 1.0, "large-play": 1.0}  # fmt: skip
+    for kind, p in table5.items():
+        assert tasks.default_confidence_level(("antmaze", kind)) == p
+        assert f"antmaze-{kind}" in generate.builtin_names()
+    # a D4RL file under its own name gets the AntMaze settings without attributes
+    assert tasks.env_info(("antmaze", "large-diverse")).env_id == "eabc/AntMaze-Large-v0"
+    with pytest.raises(DatasetError, match=r"did you mean antmaze-umaze-diverse\?"):
+        generate.make("antmaze-umaze-divers", "unused.hdf5")
+    with pytest.raises(ValueError, match="unknown maze 'tiny'; the mazes are umaze, medium, large"):
+        antmaze.AntMazeEnv("tiny")
+    with pytest.raises(DatasetError, match="is AntMaze data, evaluated on eabc/AntMaze-UMaze-v0"):
+        check_spaces(make_env("Hopper-v4"), loaders.load_file(made[0]))

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import sys
+from pathlib import Path
 from typing import Annotated
 
 import tyro
@@ -29,12 +30,15 @@ class DataMake:
 
 @dataclasses.dataclass(frozen=True)
 class DataInfo:
-    """Describe a dataset: size, episodes, returns and normalised score."""
+    """Describe a dataset: size, episodes, returns and normalised score; for AntMaze data also the
+    controller's success rate, the reward-1 transitions and the position jumps."""
 
     name: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="NAME")]
     """A built-in name, a file path or minari:ID."""
     cache_dir: str | None = None
     """Cache directory (default $EABC_CACHE_DIR or ~/.cache/eabc)."""
+    plot: Annotated[str | None, tyro.conf.arg(metavar="PNG")] = None
+    """AntMaze data: also draw the torso positions over the maze's walls into this PNG file."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -52,7 +56,8 @@ class ZooBuild:
     run_dir: tyro.conf.Positional[str]
     """The `eabc sac` run directory (its actor snapshots and log)."""
     env: tyro.conf.Positional[str]
-    """hopper, halfcheetah or walker2d."""
+    """hopper, halfcheetah, walker2d, or antmaze (the AntMaze low-level policy, from an `eabc sac`
+    run on eabc/AntDirection-v0)."""
     root: str | None = None
     """Zoo directory (default: the package's, or $EABC_ZOO_DIR)."""
     episodes: Positive = 10
@@ -63,6 +68,8 @@ class ZooBuild:
     """Return the medium policy aims at (default: D4RL's medium level)."""
     rechoose_medium: bool = False
     """Search for the medium policy again even if the zoo already has one."""
+    step: Positive | None = None
+    """antmaze: the snapshot to ship (default the run's latest)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -79,6 +86,10 @@ def run_zoo(cmd: ZooBuild | ZooPack) -> None:
 
     if isinstance(cmd, ZooPack):
         print(zoo_build.pack(cmd.run_dir, cmd.dest))
+        return
+    if cmd.env == "antmaze":
+        card = zoo_build.build_antmaze(cmd.run_dir, cmd.root, cmd.step, cmd.episodes)
+        print(json.dumps({k: card[k] for k in ("training_steps", "controller")}, indent=2))
         return
     medium_step = None
     if (zoo.zoo_dir(cmd.root) / cmd.env / zoo.CARD).exists() and not cmd.rechoose_medium:
@@ -132,17 +143,21 @@ def run_data(cmd: DataMake | DataInfo | DataList | DataExport) -> None:
         print(header)
         for name in generate.builtin_names():
             path = generate.dataset_path(name, cmd.cache_dir)
-            level = generate.d4rl_level(name)
+            level = _number(generate.d4rl_level(name), 5, ".0f")
             if not path.exists():
-                print(
-                    f"{name:26s} {'-':>11s} {'-':>8s} {'-':>17s} {'-':>6s} {level:5.0f}  (not made)"
-                )
+                print(f"{name:26s} {'-':>11s} {'-':>8s} {'-':>17s} {'-':>6s} {level}  (not made)")
                 continue
             info = generate.describe(path)
             spread = f"{info['return_mean']:.0f} +- {info['return_std']:.0f}"
+            score = _number(info["normalized_return"], 6, ".1f")
+            episodes = info["episodes"]
+            if "antmaze" in info:  # whole controller episodes; terminals mark goal visits
+                rate = info["antmaze"]["controller_success_rate"]
+                spread = "-" if rate is None else f"{rate:.0%} reach goal"
+                episodes, score = info["timeouts"], _number(None, 6, "")
             print(
-                f"{name:26s} {info['transitions']:11d} {info['episodes']:8d} {spread:>17s} "
-                f"{info['normalized_return']:6.1f} {level:5.0f}  {path}"
+                f"{name:26s} {info['transitions']:11d} {episodes:8d} {spread:>17s} "
+                f"{score} {level}  {path}"
             )
     elif isinstance(cmd, DataExport) and cmd.d3rlpy is not None:
         from eabc.data import d3rlpy_export  # noqa: PLC0415
@@ -155,5 +170,15 @@ def run_data(cmd: DataMake | DataInfo | DataList | DataExport) -> None:
         dataset_id = cmd.dataset_id or loaders.minari_id(dataset.name)
         print(loaders.export_minari(dataset, dataset_id, overwrite=cmd.force))
     else:
+        if cmd.plot is not None and not Path(cmd.plot).expanduser().parent.is_dir():
+            raise ValueError(f"--plot {cmd.plot}: its directory does not exist; make it first")
         dataset = sources.load_dataset(cmd.name, cmd.cache_dir)
         print(json.dumps(generate.describe_dataset(dataset), indent=2))
+        if cmd.plot is not None:
+            from eabc.data import antmaze_collect  # noqa: PLC0415
+
+            print(antmaze_collect.plot_coverage(dataset, Path(cmd.plot).expanduser()))
+
+
+def _number(value: float | None, width: int, spec: str) -> str:
+    return f"{'-':>{width}s}" if value is None else f"{value:{width}{spec}}"

@@ -29,7 +29,7 @@ from xml.etree import ElementTree
 import gymnasium as gym
 import numpy as np
 
-from eabc.data import mazes
+from eabc.data import mazes, tasks
 from eabc.data.mazes import Maze
 
 D4RL_EDITS: dict[str, dict[str, str | None]] = {
@@ -151,7 +151,7 @@ class AntMazeEnv(_Ant):
     """
 
     def __init__(self, maze: str = "umaze", terminate_on_success: bool = True):
-        self.maze = mazes.MAZES[maze]
+        self.maze = mazes.get(maze)
         self.terminate_on_success = terminate_on_success
         super().__init__(self.maze)
         self.goal = self.maze.goal_xy
@@ -231,11 +231,7 @@ def lowlevel_observation(maze_obs: np.ndarray, target_xy) -> np.ndarray:
     return np.concatenate([maze_obs[2:], direction])
 
 
-ENV_IDS = {
-    "umaze": "eabc/AntMaze-UMaze-v0",
-    "medium": "eabc/AntMaze-Medium-v0",
-    "large": "eabc/AntMaze-Large-v0",
-}
+ENV_IDS = {maze: info.env_id for maze, info in tasks.ANTMAZE_ENVS.items()}
 """The evaluation environment of each maze (play and diverse datasets share their maze's)."""
 DIRECTION_ENV_ID = "eabc/AntDirection-v0"
 """The low-level training environment: ``eabc sac --env eabc/AntDirection-v0``."""

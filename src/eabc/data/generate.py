@@ -1,7 +1,9 @@
 """D4RL-style datasets made here, by D4RL's recipe, into a cache directory.
 
 Random datasets need no behaviour policy (uniform random actions); medium, expert, medium-replay and
-medium-expert roll out the SAC policies of the behaviour-policy zoo (:mod:`eabc.data.zoo`).
+medium-expert roll out the SAC policies of the behaviour-policy zoo (:mod:`eabc.data.zoo`); the
+AntMaze datasets steer the zoo's low-level Ant policy through the maze with D4RL's waypoint
+controller (:mod:`eabc.data.antmaze_collect`).
 """
 
 from __future__ import annotations
@@ -31,9 +33,18 @@ ActionFn = Callable[[np.ndarray, np.random.Generator], np.ndarray]
 
 
 def builtin_names() -> list[str]:
-    return [
+    mujoco = [
         f"{env}-{kind}" for env in ("hopper", "halfcheetah", "walker2d") for kind in tasks.KINDS
     ]
+    return mujoco + [f"antmaze-{kind}" for kind in tasks.ANTMAZE_KINDS]
+
+
+def did_you_mean(name: str) -> str:
+    """`` (did you mean X?)`` for the built-in name closest to a mistyped one, else ``""``."""
+    import difflib  # noqa: PLC0415
+
+    close = difflib.get_close_matches(name.lower(), builtin_names(), n=1, cutoff=0.8)
+    return f" (did you mean {close[0]}?)" if close else ""
 
 
 def dataset_path(name: str, cache: str | os.PathLike | None = None) -> Path:
@@ -67,6 +78,10 @@ def is_current(path: str | os.PathLike, name: str, zoo_root=None) -> bool:
     if metadata.get("version") != FORMAT_VERSION:
         return False
     try:
+        if env_name == "antmaze":
+            from eabc.data import antmaze_collect  # noqa: PLC0415
+
+            return metadata.get("zoo") == antmaze_collect.policy_fingerprint(zoo_root)
         return metadata.get("zoo") == zoo.fingerprint(env_name, kind, zoo_root)
     except (DatasetError, FileNotFoundError):
         return True  # no zoo here to compare with: the cached file is all there is
@@ -84,11 +99,18 @@ RECIPES = {
         "uniform random during the warm-up) in proportion to how long it was the acting policy"
     ),
     "medium-expert": "the medium dataset followed by the expert dataset (same seed)",
+    "antmaze": (
+        "the zoo's direction-following Ant policy steered by D4RL's BFS waypoint controller, "
+        "Gaussian action noise 0.2, whole episodes ending in a timeout, rewards 1 (and terminals) "
+        "where the next position is within 0.5 of the evaluation goal"
+    ),
 }
 
 
 def default_size(name: str) -> int:
     env, kind = tasks.parse_task(name)
+    if env == "antmaze":
+        return DATASET_SIZE
     if kind == "medium-replay":
         return MEDIUM_REPLAY_SIZE[env]
     return 2 * DATASET_SIZE if kind == "medium-expert" else DATASET_SIZE
@@ -109,10 +131,15 @@ def make(
 
     task = tasks.parse_task(name)
     if name not in builtin_names() or task is None:
-        raise DatasetError(f"no recipe for {name!r}; built-in names: {', '.join(builtin_names())}")
+        raise DatasetError(
+            f"no recipe for {name!r}{did_you_mean(name)}; built-in names: "
+            f"{', '.join(builtin_names())}"
+        )
     env_name, kind = task
-    env = tasks.ENVS[env_name]
     size = size or default_size(name)
+    if env_name == "antmaze":
+        return _make_antmaze(name, kind, path, seed, size, zoo_root)
+    env = tasks.ENVS[env_name]
     metadata = {"recipe": RECIPES[kind], "seed": seed, "version": FORMAT_VERSION}
     if kind != "random":
         metadata["zoo"] = zoo.fingerprint(env_name, kind, zoo_root)
@@ -146,6 +173,35 @@ def make(
         env_id=env.env_id,
         ref_min_score=env.ref_min_score,
         ref_max_score=env.ref_max_score,
+        metadata=metadata,
+    )
+    return save_hdf5(dataset, path)
+
+
+def _make_antmaze(name: str, kind: str, path, seed: int, size: int, zoo_root) -> Path:
+    """An AntMaze dataset with its conventions as its own settings: the evaluation environment,
+    reference scores 0 and 1 (the score is 100 x the success rate) and the reward offset -1."""
+    from eabc.data import antmaze_collect  # noqa: PLC0415
+
+    actor, card = antmaze_collect.load_policy(zoo_root)
+    num_envs = antmaze_collect.NUM_ENVS
+    dataset, controller = antmaze_collect.make_dataset(name, kind, size, seed, actor, num_envs)
+    env = tasks.env_info(("antmaze", kind))
+    metadata = {
+        "recipe": RECIPES["antmaze"],
+        "seed": seed,
+        "version": FORMAT_VERSION,
+        "zoo": antmaze_collect.policy_fingerprint(zoo_root),
+        "policy": {k: card.get(k) for k in ("training_steps", "direction_return", "controller")},
+        "controller": controller,
+    }
+    dataset = Dataset(
+        **{k: getattr(dataset, k) for k in _ARRAYS},
+        name=name,
+        env_id=env.env_id,
+        ref_min_score=env.ref_min_score,
+        ref_max_score=env.ref_max_score,
+        reward_offset=tasks.reward_offset(("antmaze", kind)),
         metadata=metadata,
     )
     return save_hdf5(dataset, path)
@@ -263,6 +319,8 @@ def save_hdf5(dataset: Dataset, path: str | os.PathLike) -> Path:
         if dataset.ref_min_score is not None:
             f.attrs["ref_min_score"] = dataset.ref_min_score
             f.attrs["ref_max_score"] = dataset.ref_max_score
+        if dataset.reward_offset is not None:
+            f.attrs["reward_offset"] = dataset.reward_offset
         f.attrs["metadata"] = json.dumps(dataset.metadata)
     os.replace(tmp, path)
     return path
@@ -280,7 +338,7 @@ def describe_dataset(dataset: Dataset) -> dict:
     """Size, episodes, returns and normalised return beside D4RL's level."""
     returns = dataset.episode_returns()
     mean = float(returns.mean()) if len(returns) else float("nan")
-    return {
+    info = {
         "name": dataset.name,
         "env_id": dataset.env_id,
         "transitions": dataset.size,
@@ -293,6 +351,11 @@ def describe_dataset(dataset: Dataset) -> dict:
         "d4rl_normalized_return": d4rl_level(dataset.name),
         "metadata": dataset.metadata,
     }
+    if dataset.env_id in tasks.antmaze_env_ids():
+        from eabc.data import antmaze_collect  # noqa: PLC0415
+
+        info["antmaze"] = antmaze_collect.checks(dataset)
+    return info
 
 
 def describe(path: str | os.PathLike) -> dict:

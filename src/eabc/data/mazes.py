@@ -148,6 +148,13 @@ MAZES: dict[str, Maze] = {
 ``antmaze-{umaze,medium,large}-*-v2``; play and diverse datasets share their maze's map)."""
 
 
+def get(name: str) -> Maze:
+    """The maze called ``name``; an unknown name is refused with the known ones."""
+    if name not in MAZES:
+        raise ValueError(f"unknown maze {name!r}; the mazes are {', '.join(MAZES)}")
+    return MAZES[name]
+
+
 def maze_of(dataset: str) -> Maze:
     """The maze of an AntMaze dataset name: ``antmaze-medium-play`` -> ``MAZES["medium"]``."""
     for name, maze in MAZES.items():

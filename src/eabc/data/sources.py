@@ -27,7 +27,8 @@ def load_dataset(source: str | os.PathLike, cache_dir: str | os.PathLike | None 
     if "/" in text and loaders.has_minari(text):
         return loaders.load_minari(text)
     raise DatasetError(
-        f"unknown dataset {text!r}: it is not a file, not a local Minari dataset and not a built-in "
-        f"name. Built-in names: {', '.join(generate.builtin_names())}. For a file give its path "
-        "(.hdf5, .h5 or .npz); for Minari use minari:ID."
+        f"unknown dataset {text!r}{generate.did_you_mean(text)}: it is not a file, not a local "
+        "Minari dataset and not a built-in name. Built-in names: "
+        f"{', '.join(generate.builtin_names())}. For a file give its path (.hdf5, .h5 or .npz); "
+        "for Minari use minari:ID."
     )

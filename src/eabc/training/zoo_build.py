@@ -174,3 +174,76 @@ def pack(run_dir: str | os.PathLike, dest: str | os.PathLike) -> Path:
     for path in sorted((run_dir / SNAPSHOTS).glob("actor_*.npz")):
         zoo.save_actor(dest / SNAPSHOTS / path.name, zoo.load_actor(path))
     return dest
+
+
+def build_antmaze(
+    run_dir: str | os.PathLike,
+    root: str | os.PathLike | None = None,
+    step: int | None = None,
+    episodes: int = 30,
+    seed: int = 12345,
+    log: Callable[[str], None] = print,
+) -> dict:
+    """Make ``zoo/antmaze`` from an ``eabc sac`` run on ``eabc/AntDirection-v0``: its snapshot at
+    ``step`` (default the latest) as ``direction.npz`` (float16), and a card with the training
+    steps, the direction task's evaluation return and, per maze, how often the waypoint
+    controller with these rounded weights (and the data's action noise) takes the ant from the
+    start to the evaluation goal within the time limit, and how often the ant flips."""
+    from eabc.data import antmaze, antmaze_collect, mazes  # noqa: PLC0415
+
+    run_dir = Path(run_dir)
+    config = read_config(run_dir)
+    if config["env_id"] != antmaze.DIRECTION_ENV_ID:
+        raise DatasetError(
+            f"{run_dir} trained on {config['env_id']}; the AntMaze low-level policy is trained on "
+            f"{antmaze.DIRECTION_ENV_ID}"
+        )
+    snapshots = sorted(int(p.stem.split("_")[1]) for p in (run_dir / SNAPSHOTS).glob("actor_*.npz"))
+    if not snapshots or (step is not None and step not in snapshots):
+        raise DatasetError(f"{run_dir} has no actor snapshot {'' if step is None else step}")
+    step = snapshots[-1] if step is None else step
+    actor = zoo.rounded(zoo.load_actor(run_dir / SNAPSHOTS / f"actor_{step:08d}.npz"))
+    controller = {}
+    for maze in mazes.MAZES:
+        collected = antmaze_collect.collect(maze, "fixed", episodes, seed, actor, desc=maze)
+        controller[maze] = collected.summary()
+        log(
+            f"{maze}: success {controller[maze]['success_rate']:.0%}, flips {controller[maze]['flip_rate']:.0%}"
+        )
+    evaluations = _evaluation_returns(run_dir)
+    at = max((s for s in evaluations if s <= step), default=None)
+    out = zoo.zoo_dir(root) / antmaze_collect.ZOO_ENTRY
+    out.mkdir(parents=True, exist_ok=True)
+    zoo.save_actor(out / antmaze_collect.POLICY_FILE, actor)
+    card = {
+        "env_id": antmaze.DIRECTION_ENV_ID,
+        "algorithm": "SAC (eabc sac) on the direction-following task; the controller acts with the "
+        "actor's mean action plus Gaussian noise 0.2",
+        "sac": config["sac"],
+        "agent": config["agent"],
+        "training_steps": step,
+        "direction_return": None if at is None else {"step": at, "return_mean": evaluations[at]},
+        "weights": "float16 npz; the rates below were measured with these rounded weights",
+        "evaluation_seed": seed,
+        "controller": {
+            "what": "episodes from the maze's start to its evaluation goal (family 'fixed'), the "
+            "maze's time limit, action noise 0.2; success: within 0.5 of the goal at some step; "
+            "flip: the torso upside down at some step",
+            **controller,
+        },
+        "file": antmaze_collect.POLICY_FILE,
+    }
+    (out / zoo.CARD).write_text(json.dumps(card, indent=2) + "\n")
+    return card
+
+
+def _evaluation_returns(run_dir: Path) -> dict[int, float]:
+    """The evaluation return (deterministic actions) logged at each evaluation step."""
+    import csv  # noqa: PLC0415
+
+    with open(run_dir / "log.csv", newline="") as f:
+        return {
+            int(row["step"]): float(row["eval_return"])
+            for row in csv.DictReader(f)
+            if row.get("eval_return") not in (None, "", "nan")
+        }

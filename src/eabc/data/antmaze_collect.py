@@ -1,0 +1,299 @@
+"""AntMaze data by D4RL's recipe: the direction-following Ant policy steered through a maze by the
+waypoint planner, several environments at once.
+
+D4RL's ``scripts/generation/generate_ant_maze_datasets.py`` in our terms: every step, the
+breadth-first-search planner (:func:`eabc.data.mazes.waypoint`) gives the next cell's centre plus
+``U(0, 1)`` noise per axis (the goal itself once in the goal's cell), the low-level policy sees the
+ant's state and the unit vector toward that waypoint (:func:`eabc.data.antmaze.lowlevel_observation`),
+and Gaussian noise of standard deviation 0.2 is added to its action, clipped to [-1, 1]. The ant does
+not stop at the goal (it stays around it until the time limit), so every episode has the maze's
+full length, 700 steps in umaze and 1,000 otherwise, and ends in a timeout.
+
+Starts and goals per dataset family (:data:`FAMILIES`); the rewards are relabelled afterwards
+against the evaluation goal (:func:`eabc.data.mazes.relabel`).
+
+The low-level policy is the zoo's ``antmaze/direction.npz`` (:func:`load_policy`), its card
+``antmaze/card.json``; ``eabc zoo build RUN_DIR antmaze`` makes both from an ``eabc sac`` run on
+``eabc/AntDirection-v0``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from eabc import networks
+from eabc.data import antmaze, mazes, zoo
+from eabc.data.dataset import Dataset, DatasetError
+from eabc.data.mazes import Cell, Maze
+
+ACTION_NOISE = 0.2
+"""Standard deviation of the Gaussian noise on every action (D4RL's ``--noisy``)."""
+NUM_ENVS = 10
+"""Environments stepped together, the policy batched over them. Part of the recipe: the batched
+product's float64 sums may round differently for another batch size."""
+ZOO_ENTRY = "antmaze"
+POLICY_FILE = "direction.npz"
+
+FAMILIES = {
+    "fixed": "D4RL's antmaze-umaze: every episode from the start cell (D4RL's reset noise) to the "
+    "evaluation goal cell",
+    "diverse": "random goals from random starts: start and goal cells drawn uniformly from the "
+    "free cells (different ones), the start with D4RL's U(0, 1) multi-start noise",
+    "play": "hand-picked goals from hand-picked starts: goals from the goal cells of the map D4RL's "
+    "generation script rolled out in (its G cells), starts from those and the start cell",
+}
+"""How an episode chooses its start and goal cell; the goal point is the cell's centre plus D4RL's
+goal noise, ``U(0, 1) + U(0, 0.5)`` per axis (:class:`eabc.data.antmaze.AntMazeEnv`)."""
+
+
+def dataset_family(kind: str) -> tuple[str, str]:
+    """``(maze, family)`` of an AntMaze dataset kind: ``medium-play`` -> ``("medium", "play")``."""
+    maze, _, family = kind.partition("-")
+    return maze, family or "fixed"
+
+
+def episode_cells(maze: Maze, family: str, rng: np.random.Generator) -> tuple[Cell | None, Cell]:
+    """``(start cell, goal cell)`` of one episode; a start of None is the maze's own start."""
+    if family == "fixed":
+        return None, maze.goal_cell
+    if family == "diverse":
+        cells = maze.free_cells
+        start, goal = rng.choice(len(cells), size=2, replace=False)
+        return cells[start], cells[goal]
+    if family == "play":
+        goals = maze.generation_goals
+        goal = goals[rng.integers(len(goals))]
+        starts = [cell for cell in (maze.start_cell, *goals) if cell != goal]
+        return starts[rng.integers(len(starts))], goal
+    raise ValueError(f"unknown AntMaze family {family!r}; known: {', '.join(FAMILIES)}")
+
+
+def policy_path(root: str | os.PathLike | None = None) -> Path:
+    return zoo.zoo_dir(root) / ZOO_ENTRY / POLICY_FILE
+
+
+def load_policy(root: str | os.PathLike | None = None) -> tuple[dict[str, np.ndarray], dict]:
+    """The zoo's low-level direction-following actor and its card."""
+    path = policy_path(root)
+    if not path.exists():
+        raise DatasetError(
+            f"the zoo has no AntMaze low-level policy ({path} is missing); train one with `eabc "
+            f"sac --env {antmaze.DIRECTION_ENV_ID}` and add it with `eabc zoo build RUN_DIR antmaze`"
+        )
+    card_path = path.parent / zoo.CARD
+    card = json.loads(card_path.read_text()) if card_path.exists() else {}
+    return zoo.load_actor(path), card
+
+
+def policy_fingerprint(root: str | os.PathLike | None = None) -> str:
+    """A digest of the low-level policy's weights, kept in every dataset made with it."""
+    return hashlib.sha256(policy_path(root).read_bytes()).hexdigest()[:16]
+
+
+@dataclasses.dataclass
+class Collected:
+    """Transitions of whole episodes, in episode order, and how each episode went."""
+
+    observations: np.ndarray
+    actions: np.ndarray
+    next_observations: np.ndarray
+    goals: np.ndarray
+    """Each episode's commanded goal, ``[episodes, 2]``."""
+    success: np.ndarray
+    """Whether the ant came within 0.5 of its episode's goal."""
+    flipped: np.ndarray
+    """Whether the torso turned upside down (its z axis pointing below the horizon)."""
+
+    def summary(self) -> dict:
+        return {
+            "episodes": int(len(self.success)),
+            "success_rate": float(self.success.mean()),
+            "flip_rate": float(self.flipped.mean()),
+        }
+
+
+def collect(
+    maze_name: str,
+    family: str,
+    episodes: int,
+    seed: int,
+    actor: dict[str, np.ndarray],
+    max_episode_steps: int | None = None,
+    num_envs: int = NUM_ENVS,
+    action_noise: float = ACTION_NOISE,
+    desc: str = "antmaze",
+) -> Collected:
+    """Roll out ``episodes`` controller episodes in ``maze_name`` (:data:`FAMILIES`).
+
+    Episode ``i`` draws everything (cells, reset, waypoint and action noise) from its own generator
+    seeded with ``(seed, i)``: the data are the same for a seed, whatever the number of episodes.
+    """
+    maze = mazes.get(maze_name)
+    steps = max_episode_steps or maze.max_episode_steps
+    act = networks.numpy_actor(actor, 1.0, gaussian=True)
+    envs = [antmaze.AntMazeEnv(maze.name, terminate_on_success=False) for _ in range(num_envs)]
+    rows = episodes * steps
+    obs_out = np.empty((rows, antmaze.OBS_DIM), np.float32)
+    next_out = np.empty((rows, antmaze.OBS_DIM), np.float32)
+    act_out = np.empty((rows, envs[0].action_space.shape[0]), np.float32)
+    goals = np.empty((episodes, 2))
+    success, flipped = np.zeros(episodes, bool), np.zeros(episodes, bool)
+    bar = tqdm(total=rows, desc=desc, unit="step", mininterval=1.0, leave=False, disable=None)
+    for first in range(0, episodes, num_envs):
+        # Always a full batch (the policy's batch size stays the same); extra episodes are dropped.
+        ids = range(first, first + num_envs)
+        rngs = [np.random.default_rng([seed, i]) for i in ids]
+        obs = []
+        for env, rng in zip(envs, rngs):
+            start, goal = episode_cells(maze, family, rng)
+            options = {"goal_cell": goal} | ({"start_cell": start} if start is not None else {})
+            obs.append(env.reset(seed=int(rng.integers(2**63)), options=options)[0])
+        obs = np.array(obs)
+        batch_goals = np.array([env.goal for env in envs])
+        reached, upside_down = np.zeros(num_envs, bool), np.zeros(num_envs, bool)
+        live = [k for k, i in enumerate(ids) if i < episodes]
+        for t in range(steps):
+            targets = [mazes.waypoint(maze, o[:2], g, r) for o, g, r in zip(obs, batch_goals, rngs)]
+            low = np.stack([antmaze.lowlevel_observation(o, w) for o, w in zip(obs, targets)])
+            actions = act(low).astype(np.float64)
+            noise = np.stack([r.standard_normal(actions.shape[1]) for r in rngs])
+            actions = np.clip(actions + action_noise * noise, -1.0, 1.0).astype(np.float32)
+            next_obs = np.array([env.step(a)[0] for env, a in zip(envs, actions)])
+            reached |= mazes.is_success(next_obs[:, :2], batch_goals)
+            quat = next_obs[:, 3:7]
+            upside_down |= 1.0 - 2.0 * (quat[:, 1] ** 2 + quat[:, 2] ** 2) < 0.0
+            for k in live:
+                row = (first + k) * steps + t
+                obs_out[row], act_out[row], next_out[row] = obs[k], actions[k], next_obs[k]
+            obs = next_obs
+            bar.update(len(live))
+        for k in live:
+            goals[first + k], success[first + k] = batch_goals[k], reached[k]
+            flipped[first + k] = upside_down[k]
+    bar.close()
+    return Collected(obs_out, act_out, next_out, goals, success, flipped)
+
+
+def make_dataset(
+    name: str,
+    kind: str,
+    size: int,
+    seed: int,
+    actor: dict[str, np.ndarray],
+    num_envs: int = NUM_ENVS,
+) -> tuple[Dataset, dict]:
+    """``size`` transitions of the AntMaze dataset ``antmaze-KIND``, relabelled against the
+    evaluation goal; the transitions and a summary of the controller's episodes."""
+    maze_name, family = dataset_family(kind)
+    maze = mazes.get(maze_name)
+    steps = maze.max_episode_steps
+    episodes = -(-size // steps)
+    data = collect(maze_name, family, episodes, seed, actor, num_envs=num_envs, desc=name)
+    goal = relabel_goal(maze)
+    rewards, terminals = mazes.relabel(data.next_observations[:size, :2], goal)
+    timeouts = np.zeros(size, bool)
+    timeouts[steps - 1 :: steps] = True
+    timeouts[-1] = True
+    dataset = Dataset(
+        observations=data.observations[:size],
+        actions=data.actions[:size],
+        rewards=rewards,
+        next_observations=data.next_observations[:size],
+        terminals=terminals,
+        timeouts=timeouts,
+        name=name,
+    )
+    summary = {
+        **data.summary(),
+        "family": family,
+        "family_rule": FAMILIES[family],
+        "relabel_goal": goal.tolist(),
+        "action_noise": ACTION_NOISE,
+        "num_envs": num_envs,
+    }
+    return dataset, summary
+
+
+def relabel_goal(maze: Maze) -> np.ndarray:
+    """The goal the rewards are relabelled against: the evaluation goal cell's centre plus 0.75 per
+    axis, the middle of where evaluation draws its goal (``U(0, 1) + U(0, 0.5)``). D4RL relabelled
+    against one such draw."""
+    return maze.goal_xy + 0.75
+
+
+def position_jumps(dataset: Dataset, max_step: float = 1.0) -> dict:
+    """Transitions whose episode continues (no timeout) but whose position does not: the next
+    row's observation is not this row's next observation, or the torso moved more than
+    ``max_step`` metres in one step (the ant walks about 0.2 m per 0.1 s step)."""
+    xy, next_xy = dataset.observations[:, :2], dataset.next_observations[:, :2]
+    moved = np.linalg.norm(next_xy - xy, axis=1) > max_step
+    continues = ~dataset.timeouts[:-1]
+    broken = continues & np.any(dataset.observations[1:] != dataset.next_observations[:-1], axis=1)
+    rows = np.flatnonzero(np.append(broken, False) | moved)
+    return {"count": int(len(rows)), "first_rows": rows[:5].tolist()}
+
+
+def maze_of_env(env_id: str | None) -> Maze | None:
+    """The maze whose evaluation environment is ``env_id`` (None: not an AntMaze environment)."""
+    return next((mazes.MAZES[m] for m, i in antmaze.ENV_IDS.items() if i == env_id), None)
+
+
+def checks(dataset: Dataset) -> dict:
+    """What ``eabc data info`` reports of an AntMaze dataset: the controller's success rate as
+    recorded when it was made, the reward-1 transitions, and the position jumps."""
+    controller = dataset.metadata.get("controller", {})
+    return {
+        "controller_success_rate": controller.get("success_rate"),
+        "controller_flip_rate": controller.get("flip_rate"),
+        "controller_episodes": controller.get("episodes"),
+        "reward_1_transitions": int((dataset.rewards == 1).sum()),
+        "position_jumps_without_timeout": position_jumps(dataset),
+    }
+
+
+def plot_coverage(dataset: Dataset, path: str | os.PathLike) -> Path:
+    """A PNG of where the data's torso positions lie over the maze's walls (log-scaled counts),
+    with the start cell and the relabelling goal's 0.5 m circle."""
+    import matplotlib  # noqa: PLC0415
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+    from matplotlib.colors import LogNorm  # noqa: PLC0415
+
+    maze = maze_of_env(dataset.env_id)
+    if maze is None:
+        raise DatasetError(
+            f"{dataset.name}: --plot draws AntMaze data over its maze, but the data's environment "
+            f"is {dataset.env_id!r}, not one of {', '.join(antmaze.ENV_IDS.values())}"
+        )
+    half = mazes.SCALING / 2
+    rows, cols = maze.shape
+    low, high = maze.cell_to_xy((0, 0)) - half, maze.cell_to_xy((rows - 1, cols - 1)) + half
+    fig, ax = plt.subplots(figsize=(1 + cols * 0.7, 1 + rows * 0.7), dpi=120)
+    xy = dataset.observations[:, :2]
+    *_, image = ax.hist2d(
+        xy[:, 0], xy[:, 1], bins=(cols * 16, rows * 16), range=list(zip(low, high)),
+        norm=LogNorm(), cmap="viridis",
+    )  # fmt: skip
+    for cell in maze.wall_cells:
+        x, y = maze.cell_to_xy(cell) - half
+        ax.add_patch(plt.Rectangle((x, y), mazes.SCALING, mazes.SCALING, color="0.35"))
+    ax.plot(*maze.start_xy, "o", color="white", markeredgecolor="black", label="start")
+    goal = plt.Circle(relabel_goal(maze), mazes.GOAL_TOLERANCE, fill=False, color="red", lw=2)
+    ax.add_patch(goal)
+    ax.plot([], [], "o", mfc="none", color="red", label="goal (reward 1)")
+    ax.set(xlim=(low[0], high[0]), ylim=(low[1], high[1]), aspect="equal", xlabel="x", ylabel="y")
+    ax.set_title(f"{dataset.name}: {dataset.size:,} positions", fontsize=9)
+    ax.legend(loc="upper right", fontsize=7)
+    fig.colorbar(image, ax=ax, label="transitions per bin")
+    path = Path(path)
+    fig.savefig(path, bbox_inches="tight")
+    plt.close(fig)
+    return path
