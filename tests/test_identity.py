@@ -264,3 +264,22 @@ def test_inputs_that_fail_after_training_are_refused_before_it(
     monkeypatch.setenv("EABC_CACHE_DIR", str(tmp_path / "afile"))
     with pytest.raises(ValueError, match=r"\$EABC_CACHE_DIR .*afile is not a directory"):
         trainer.start(TrainConfig(**SMALL), tmp_path / "env", AGENT, dataset=pendulum_dataset)
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["train", "--dataset", "hopper-medium", "--cache-dir", "~nouser/c", "--dry-run"],
+        ["train", "--dataset", "~nouser/d.npz", "--dry-run"],
+        ["data", "make", "hopper-medium", "--cache-dir", "~nouser/c"],
+        ["sweep", "--preset", "study-1m", "--root", "~nouser/r", "--dry-run"],
+        ["results", "~nouser/r"],
+    ],
+)
+def test_a_home_that_does_not_exist_is_refused_in_one_line(argv, tmp_path, monkeypatch):
+    """``~nouser`` cannot be expanded (Python raises RuntimeError): every command that takes a
+    path names it and asks for the full path, before any work and without a traceback."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit, match=r"error: ~nouser/\S+: cannot expand ~nouser .*full path"):
+        main(argv)
+    assert not list(tmp_path.iterdir()), "nothing made"

@@ -10,7 +10,7 @@ def cache_dir(override: str | os.PathLike | None = None) -> Path:
     """Where made datasets and compiled programs live: the argument, else ``$EABC_CACHE_DIR``,
     else ``~/.cache/eabc``."""
     root = override or os.environ.get("EABC_CACHE_DIR") or Path.home() / ".cache" / "eabc"
-    return Path(root).expanduser()
+    return expand(root)
 
 
 def expand(path: str | os.PathLike) -> Path:

@@ -140,8 +140,8 @@ def _main(argv: list[str] | None) -> None:
     except ValueError as error:  # invalid settings caught in a dataclass __post_init__
         sys.exit(f"error: {error}")
     options = getattr(cmd, "config", cmd)
-    compile_cache.enable(cache_root=getattr(options, "cache_dir", None))
     try:
+        compile_cache.enable(cache_root=getattr(options, "cache_dir", None))
         HANDLERS[type(cmd)](cmd)
     except (ValueError, FileNotFoundError, FileExistsError, RuntimeError) as error:
         sys.exit(f"error: {error}")

@@ -10,6 +10,7 @@ from typing import Annotated, Literal
 
 import tyro
 
+from eabc import paths
 from eabc.cli.options import parse_value
 from eabc.experiments.presets import PRESETS as _SWEEP_PRESETS
 from eabc.ranges import NonNegativeNumber, Positive, PositiveNumber, Seed
@@ -200,7 +201,7 @@ def run_sweep(cmd: Sweep) -> None:
     from eabc.experiments import results, sweep  # noqa: PLC0415
     from eabc.experiments.spec import expand  # noqa: PLC0415
 
-    root = Path(cmd.root)
+    root = paths.expand(cmd.root)
     runs = expand(sweep_spec(cmd))
     if cmd.include:
         archived = sweep.archived_done(runs, [results.read_archive(d) for d in cmd.include])
@@ -267,7 +268,7 @@ def run_sweep(cmd: Sweep) -> None:
 def run_results(cmd: Results) -> None:
     from eabc.experiments import results  # noqa: PLC0415
 
-    if not Path(cmd.root).is_dir():
+    if not paths.expand(cmd.root).is_dir():
         raise FileNotFoundError(f"{cmd.root} does not exist; give a sweep root or a run directory")
     runs, _ = results.collect(cmd.root)
     if runs.empty:
@@ -295,7 +296,7 @@ def run_report(cmd: Report) -> None:
     from eabc.experiments import report, results  # noqa: PLC0415
     from eabc.experiments.labels import labelled  # noqa: PLC0415
 
-    if not Path(cmd.root).is_dir() and not cmd.include:
+    if not paths.expand(cmd.root).is_dir() and not cmd.include:
         raise FileNotFoundError(f"{cmd.root} does not exist; give a sweep root or a run directory")
     runs, evaluations = results.collect(cmd.root)  # nothing yet on a new machine: --include
     unusable = runs["status"].isin(results.UNUSABLE)
@@ -331,7 +332,7 @@ def run_report(cmd: Report) -> None:
             raise ValueError(
                 f"{option} {label}: no runs with that label; labels: {', '.join(sorted(labels))}"
             )
-    out = Path(cmd.out) if cmd.out else Path(cmd.root) / "report"
+    out = Path(cmd.out) if cmd.out else paths.expand(cmd.root) / "report"
     fix = cmd.fix or report.RECOMMENDED
     written = report.write_report(runs, evaluations, out, cmd.baseline, fix, repeats=repeats)
     for name, path in written.items():

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from eabc import paths
 from eabc.data.dataset import Dataset, DatasetError
 
 
@@ -76,7 +77,7 @@ def to_d3rlpy(dataset: Dataset):
 def check_target(path: str | os.PathLike, overwrite: bool = False) -> Path:
     """Fail before any work if d3rlpy is missing or ``path`` cannot be written."""
     _d3rlpy()
-    path = Path(path).expanduser()
+    path = paths.expand(path)
     if path.exists() and not overwrite:
         raise FileExistsError(f"{path} exists already; pass --force to replace it")
     if not path.parent.is_dir():

@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from eabc import compile_cache
+from eabc import compile_cache, paths
 from eabc.agents import get_algorithm
 from eabc.data import generate
 from eabc.experiments.spec import RunSpec, differences, groups, is_path
@@ -230,9 +230,9 @@ def _absolute(run: RunSpec) -> dict:
     """``run`` as JSON with its dataset file and cache directory as absolute paths."""
     data = run.to_json()
     if is_path(run.dataset):
-        data["dataset"] = str(Path(run.dataset).expanduser().resolve())
+        data["dataset"] = str(paths.expand(run.dataset).resolve())
     if data["train"].get("cache_dir"):
-        data["train"]["cache_dir"] = str(Path(data["train"]["cache_dir"]).expanduser().resolve())
+        data["train"]["cache_dir"] = str(paths.expand(data["train"]["cache_dir"]).resolve())
     return data
 
 
@@ -425,7 +425,7 @@ def run_ray(
     except ImportError:
         raise RuntimeError("--backend ray needs the ray package: pip install 'eabc[ray]'") from None
 
-    root = Path(root).expanduser().resolve()
+    root = paths.expand(root).resolve()
     if not ray.is_initialized():
         ray.init(address=address, log_to_driver=False)
     env_vars = SINGLE_THREAD if num_gpus == 0 and num_cpus <= 1 else {}

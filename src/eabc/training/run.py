@@ -27,7 +27,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from eabc import pytree, ranges
+from eabc import paths, pytree, ranges
 from eabc.agents import Algorithm, get_algorithm, validation
 from eabc.data.dataset import Dataset, DatasetError, Normalizer
 from eabc.data.sources import load_dataset
@@ -95,11 +95,11 @@ class TrainConfig:
 def check_cache_dir(path: str | Path, what: str) -> None:
     """``ValueError`` naming ``what`` when ``path`` cannot become a directory: it, or the nearest
     of its parents that exists, is a file."""
-    where = Path(path).expanduser()
+    where = paths.expand(path)
     while not where.exists() and where != where.parent:
         where = where.parent
     if where.exists() and not where.is_dir():
-        inside = "" if where == Path(path).expanduser() else f" ({where} is a file)"
+        inside = "" if where == paths.expand(path) else f" ({where} is a file)"
         raise ValueError(
             f"{what} {path} is not a directory{inside}: give a directory for the datasets and "
             "compiled programs (it is made if missing), or leave it unset for ~/.cache/eabc"
@@ -247,7 +247,7 @@ def _pretrain(run: Run) -> None:
 def _absolute_paths(config: TrainConfig) -> TrainConfig:
     """Dataset files and the cache directory as absolute paths, so that config.json works from
     any directory (``eabc evaluate``, ``--resume`` and sweeps elsewhere)."""
-    path = Path(config.dataset).expanduser()
+    path = paths.expand(config.dataset)
     if not config.dataset.startswith("minari:") and (
         path.suffix in (".hdf5", ".h5", ".npz") or path.exists()
     ):
