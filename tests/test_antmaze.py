@@ -89,10 +89,12 @@ def test_the_planner_finds_a_shortest_path_between_any_two_free_cells(name):
         mazes.distances_to(maze, (0, 0))
 
 
+@pytest.mark.parametrize("planner", ["waypoint", "WaypointPlanner"])
 @pytest.mark.parametrize("name", list(MAZES))
-def test_a_point_mass_led_by_waypoints_reaches_every_goal_and_stays_off_the_walls(name):
-    """A point that moves 0.5 m per step toward :func:`mazes.waypoint` (D4RL's noise) gets within
-    0.5 of a noisy goal from anywhere, every position it passes in a free cell."""
+def test_a_point_mass_led_by_waypoints_reaches_every_goal_and_stays_off_the_walls(name, planner):
+    """A point that moves 0.5 m per step toward :func:`mazes.waypoint` or a
+    :class:`mazes.WaypointPlanner` (D4RL's noise) gets within 0.5 of a noisy goal from anywhere,
+    every position it passes in a free cell."""
     maze, rng = MAZES[name], np.random.default_rng(0)
     cells = maze.free_cells
     pairs = [(maze.start_cell, maze.goal_cell)] + [
@@ -101,13 +103,35 @@ def test_a_point_mass_led_by_waypoints_reaches_every_goal_and_stays_off_the_wall
     for start, goal_cell in pairs:
         xy = maze.cell_to_xy(start) + rng.uniform(-1.9, 1.9, 2)
         goal = maze.cell_to_xy(goal_cell) + rng.uniform(0, 1.5, 2)
+        plan = mazes.WaypointPlanner(maze, goal)
         for _ in range(int(mazes.distances_to(maze, goal_cell)[start] + 2) * 16):
             if mazes.is_success(xy, goal):
                 break
-            offset = mazes.waypoint(maze, xy, goal, rng) - xy
+            target = (
+                plan(xy, rng)
+                if planner == "WaypointPlanner"
+                else mazes.waypoint(maze, xy, goal, rng)
+            )
+            offset = target - xy
             xy = xy + offset * min(1.0, 0.5 / np.linalg.norm(offset))
             assert maze.is_free(maze.xy_to_cell(xy)), (start, goal_cell, xy)
         assert mazes.is_success(xy, goal), (start, goal_cell)
+
+
+def test_the_planner_reaches_the_middle_of_a_cell_before_turning():
+    """medium, down column 6 toward the goal cell (6, 5): the way passes the corner cell (6, 6),
+    where the evaluation goal lies. The planner keeps heading into (6, 6) until the point is
+    within 0.5 of the middle of its waypoints, (20.5, 20.5); only then toward (6, 5)'s goal."""
+    maze, rng = MAZES["medium"], np.random.default_rng(0)
+    goal = maze.cell_to_xy((6, 5)) + 0.7
+    plan = mazes.WaypointPlanner(maze, goal)
+    assert (plan(np.array([20.5, 16.5]), rng) >= [20.0, 20.0]).all()  # in (5, 6): on to (6, 6)
+    entering = plan(np.array([20.4, 18.2]), rng)  # just inside (6, 6): its own middle first
+    assert (entering >= [20.0, 20.0]).all() and (entering < [21.0, 21.0]).all()
+    np.testing.assert_array_equal(plan(np.array([20.3, 20.2]), rng), goal)  # arrived: turn
+    np.testing.assert_array_equal(plan(np.array([19.5, 20.6]), rng), goal)  # and stays turned
+    # the stateless rule turns at the cell's edge
+    np.testing.assert_array_equal(mazes.waypoint(maze, np.array([20.4, 18.2]), goal, rng), goal)
 
 
 def test_relabelling_rewards_the_next_position_within_half_a_metre():
@@ -277,12 +301,12 @@ def test_the_controller_takes_the_ant_to_the_umaze_goal(policy):
     the evaluation goal from the start in most episodes (the card measures 30 per maze)."""
     from eabc.data import antmaze_collect
 
-    collected = antmaze_collect.collect("umaze", "fixed", 4, seed=0, actor=policy, num_envs=4)
-    assert collected.success.sum() >= 3, collected.summary()
-    assert collected.observations.shape == (4 * 700, 29) and collected.actions.shape == (2800, 8)
+    collected = antmaze_collect.collect("umaze", "fixed", 10, seed=0, actor=policy)
+    assert collected.success.sum() >= 6, collected.summary()
+    assert collected.observations.shape == (7000, 29) and collected.actions.shape == (7000, 8)
     assert np.abs(collected.actions).max() <= 1.0
     goals = collected.goals - MAZES["umaze"].goal_xy  # D4RL's goal noise, per episode
-    assert (goals >= 0).all() and (goals < 1.5).all() and len(np.unique(goals)) == 8
+    assert (goals >= 0).all() and (goals < 1.5).all() and len(np.unique(goals)) == 20
 
 
 @pytest.fixture(scope="module")

@@ -2,8 +2,9 @@
 waypoint planner, several environments at once.
 
 D4RL's ``scripts/generation/generate_ant_maze_datasets.py`` in our terms: every step, the
-breadth-first-search planner (:func:`eabc.data.mazes.waypoint`) gives the next cell's centre plus
-``U(0, 1)`` noise per axis (the goal itself once in the goal's cell), the low-level policy sees the
+breadth-first-search planner (:class:`eabc.data.mazes.WaypointPlanner`) gives the next cell's centre
+plus ``U(0, 1)`` noise per axis (the goal itself once in the goal's cell; the ant first reaches the
+middle of each cell it enters before it turns toward the next), the low-level policy sees the
 ant's state and the unit vector toward that waypoint (:func:`eabc.data.antmaze.lowlevel_observation`),
 and Gaussian noise of standard deviation 0.2 is added to its action, clipped to [-1, 1]. The ant does
 not stop at the goal (it stays around it until the time limit), so every episode has the maze's
@@ -157,10 +158,11 @@ def collect(
             obs.append(env.reset(seed=int(rng.integers(2**63)), options=options)[0])
         obs = np.array(obs)
         batch_goals = np.array([env.goal for env in envs])
+        planners = [mazes.WaypointPlanner(maze, g) for g in batch_goals]
         reached, upside_down = np.zeros(num_envs, bool), np.zeros(num_envs, bool)
         live = [k for k, i in enumerate(ids) if i < episodes]
         for t in range(steps):
-            targets = [mazes.waypoint(maze, o[:2], g, r) for o, g, r in zip(obs, batch_goals, rngs)]
+            targets = [plan(o[:2], r) for plan, o, r in zip(planners, obs, rngs)]
             low = np.stack([antmaze.lowlevel_observation(o, w) for o, w in zip(obs, targets)])
             actions = act(low).astype(np.float64)
             noise = np.stack([r.standard_normal(actions.shape[1]) for r in rngs])

@@ -205,19 +205,64 @@ def waypoint(
 ) -> np.ndarray:
     """Where the low-level policy heads next: the goal itself in the goal's cell, else the centre
     of the next cell on a shortest path plus uniform noise in ``[noise[0], noise[1])`` per axis,
-    drawn afresh at every call.
+    drawn afresh at every call (the data's controller uses :class:`WaypointPlanner`).
 
     D4RL's ``create_navigation_policy`` does the same with ``U(0, 1)`` noise (``add_random_noise``:
     ``U(0, scaling / 4)``), the default here; a point heading there never leaves free cells
     (tested), so neither the planner nor the noise walks the ant into a wall.
     """
-    here, target = maze.xy_to_cell(xy), maze.xy_to_cell(goal_xy)
-    if not maze.is_free(here):  # pushed past a wall's edge: head back through the nearest free cell
-        here = min(maze.free_cells, key=lambda c: np.linalg.norm(maze.cell_to_xy(c) - xy))
+    here, target = _free_cell(maze, xy), maze.xy_to_cell(goal_xy)
     step = next_cell(maze, here, target)
     if step == target:
         return np.asarray(goal_xy, np.float64)
     return maze.cell_to_xy(step) + rng.uniform(noise[0], noise[1], size=2)
+
+
+ARRIVAL_RADIUS = 0.5
+"""A :class:`WaypointPlanner` turns toward the next cell once within this distance of the middle of
+the cell's noisy waypoints (its centre plus 0.5 per axis)."""
+
+
+class WaypointPlanner:
+    """:func:`waypoint` with one memory: the ant first heads for the cell it has entered (its
+    centre plus the noise) and turns toward the next cell on the path only once within
+    :data:`ARRIVAL_RADIUS` of the middle of those waypoints (the centre plus 0.5 per axis).
+
+    Heading for the next cell as soon as a cell is entered cuts every corner: the ant turns at the
+    cell's edge and passes a corner cell some 2 m from its middle. In medium that means it never
+    comes near the evaluation goal, which lies in the corner cell (6, 6) that the way to the
+    generation goal (6, 5) passes: medium-play had no reward at all. D4RL's truncating
+    ``_xy_to_rowcol`` makes its ant reach each cell's centre before turning when it moves toward
+    +x or +y, and Minari's controller moves on only within 0.45 of each waypoint; this does the
+    same in every direction. One planner per episode (its goal is fixed).
+    """
+
+    def __init__(self, maze: Maze, goal_xy, noise: tuple[float, float] = (0.0, 0.25 * SCALING)):
+        self.maze, self.noise = maze, noise
+        self.goal = np.asarray(goal_xy, np.float64)
+        self.goal_cell = maze.xy_to_cell(self.goal)
+        self.cell: Cell | None = None
+        self.centred = False
+
+    def __call__(self, xy, rng: np.random.Generator) -> np.ndarray:
+        maze = self.maze
+        here = _free_cell(maze, xy)
+        if here != self.cell:
+            self.cell, self.centred = here, False
+        middle = maze.cell_to_xy(here) + np.mean(self.noise)  # where the noisy waypoints centre
+        self.centred |= bool(np.linalg.norm(xy - middle) <= ARRIVAL_RADIUS)
+        aim = next_cell(maze, here, self.goal_cell) if self.centred else here
+        if aim == self.goal_cell:
+            return self.goal.copy()
+        return maze.cell_to_xy(aim) + rng.uniform(self.noise[0], self.noise[1], size=2)
+
+
+def _free_cell(maze: Maze, xy) -> Cell:
+    """The cell ``xy`` is in; the nearest free cell where a wall's edge pushed it into a wall's."""
+    here = maze.xy_to_cell(xy)
+    if maze.is_free(here):
+        return here
+    return min(maze.free_cells, key=lambda c: np.linalg.norm(maze.cell_to_xy(c) - xy))
 
 
 def is_success(xy, goal_xy, tolerance: float = GOAL_TOLERANCE) -> np.ndarray:
