@@ -9,8 +9,14 @@ Measures, in one run:
   (median of repeats), using all cores in one process;
 - the same for one process per core, all running side by side (the multi-seed layout on a CPU).
 
+With ``--layer-norm``: what LayerNorm critics (``critic_layer_norm``, as in ``eabc-ln``) cost per
+step, EABC at K = 10 with and without them in one single-threaded process pinned to one core, the
+two compiled chunks alternating (ABBA...) so that a busy machine slows both alike; medians of the
+chunks, and of the per-round ratios, in wall-clock and in the process's CPU time.
+
     python benchmarks/speed.py                # full table (a few minutes)
     python benchmarks/speed.py --repeats 3 --steps 500
+    python benchmarks/speed.py --layer-norm   # LayerNorm's cost per step (a few minutes)
 """
 
 from __future__ import annotations
@@ -64,21 +70,31 @@ def fake_data(obs_dim: int, act_dim: int, n: int = 1_000_000):
     )
 
 
-def measure(env: str, k: int, steps: int, repeats: int) -> list[float]:
-    """steps/s of the real training chunk (sampling from a device-resident dataset included)."""
+def chunk_setup(env: str, k: int, layer_norm: bool = False):
+    """The EABC state, update and dataset the timed chunks run (p = 0.5: a Bernoulli mask is drawn)."""
     import dataclasses
     import functools
 
     import jax
 
     from eabc.agents import eabc
-    from eabc.training.chunks import train_chunk
 
     obs_dim, act_dim = SHAPES[env]
-    data = fake_data(obs_dim, act_dim)
-    config = dataclasses.replace(eabc.PRESETS["eabc"], num_critics=k, confidence_level=0.5)
+    config = dataclasses.replace(
+        eabc.PRESETS["eabc"], num_critics=k, confidence_level=0.5, critic_layer_norm=layer_norm
+    )
     state = eabc.init(jax.random.PRNGKey(0), obs_dim, act_dim, config)
     update = functools.partial(eabc.update, config=config, max_action=1.0)
+    return state, update, fake_data(obs_dim, act_dim)
+
+
+def measure(env: str, k: int, steps: int, repeats: int) -> list[float]:
+    """steps/s of the real training chunk (sampling from a device-resident dataset included)."""
+    import jax
+
+    from eabc.training.chunks import train_chunk
+
+    state, update, data = chunk_setup(env, k)
     key = jax.random.PRNGKey(1)
     state, key, _ = train_chunk(state, key, data, update, 256, steps)  # compile and warm up
     jax.block_until_ready(state)
@@ -89,6 +105,70 @@ def measure(env: str, k: int, steps: int, repeats: int) -> list[float]:
         jax.block_until_ready((state, m))
         rates.append(steps / (time.perf_counter() - start))
     return rates
+
+
+def measure_layer_norm(env: str, k: int, steps: int, rounds: int) -> dict[str, list[float]]:
+    """Seconds per chunk of ``steps`` steps, wall-clock and CPU, without and with LayerNorm critics,
+    the two alternating: ``{"plain_wall": [...], "plain_cpu": [...], "ln_wall": ..., "ln_cpu": ...}``."""
+    import jax
+
+    from eabc.training.chunks import train_chunk
+
+    runs = {}
+    for name, layer_norm in (("plain", False), ("ln", True)):
+        state, update, data = chunk_setup(env, k, layer_norm)
+        state, key, _ = train_chunk(state, jax.random.PRNGKey(1), data, update, 256, steps)
+        jax.block_until_ready(state)  # compiled and warm
+        runs[name] = [state, key, data, update]
+    times: dict[str, list[float]] = {f"{n}_{c}": [] for n in runs for c in ("wall", "cpu")}
+    for round_ in range(rounds):
+        for name in ("plain", "ln") if round_ % 2 == 0 else ("ln", "plain"):
+            state, key, data, update = runs[name]
+            wall, cpu = time.perf_counter(), time.process_time()
+            state, key, metrics = train_chunk(state, key, data, update, 256, steps)
+            jax.block_until_ready((state, metrics))
+            times[f"{name}_wall"].append(time.perf_counter() - wall)
+            times[f"{name}_cpu"].append(time.process_time() - cpu)
+            runs[name][:2] = state, key
+    return times
+
+
+def layer_norm_table(envs, k: int, steps: int, rounds: int) -> list[str]:
+    """The ``--layer-norm`` table: one pinned single-threaded worker per dataset shape."""
+    core = sorted(os.sched_getaffinity(0))[-1]
+    lines = [
+        f"EABC K = {k}, batch 256: one single-threaded process pinned to core {core}, chunks of "
+        f"{steps} steps, {rounds} rounds alternating the two networks; medians",
+        "",
+        "| data | critics | ms/step (wall) | ms/step (CPU) | steps/s (wall) |",
+        "|---|---|---|---|---|",
+    ]
+    ratios = []
+    for env in envs:
+        command = [sys.executable, __file__, "--ln-worker", env, str(k), str(steps), str(rounds)]
+        out = subprocess.run(
+            ["taskset", "-c", str(core), *command],
+            env=single_thread_env(core),
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout
+        times = json.loads(out.strip().splitlines()[-1])
+        for name, label in (("plain", "plain"), ("ln", "LayerNorm")):
+            wall = 1e3 * statistics.median(times[f"{name}_wall"]) / steps
+            cpu = 1e3 * statistics.median(times[f"{name}_cpu"]) / steps
+            lines.append(f"| {env} | {label} | {wall:.2f} | {cpu:.2f} | {1e3 / wall:.1f} |")
+        per_round = {
+            c: statistics.median(
+                ln / plain for ln, plain in zip(times[f"ln_{c}"], times[f"plain_{c}"])
+            )
+            for c in ("wall", "cpu")
+        }
+        ratios.append(
+            f"{env}: LayerNorm / plain = {per_round['wall']:.3f} wall-clock, "
+            f"{per_round['cpu']:.3f} CPU time (median of the {rounds} rounds' ratios)"
+        )
+    return [*lines, "", *ratios]
 
 
 def single_thread_env(core: int) -> dict[str, str]:
@@ -131,16 +211,36 @@ def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--steps", type=int, default=1000, help="steps per timed chunk")
+    parser.add_argument(
+        "--steps", type=int, help="steps per timed chunk (default 1000; 200 with --layer-norm)"
+    )
     parser.add_argument("--repeats", type=int, default=5, help="timed chunks per setting (median)")
+    parser.add_argument(
+        "--layer-norm",
+        action="store_true",
+        help="EABC K = 10 with and without LayerNorm critics, one pinned thread, alternating",
+    )
+    parser.add_argument("--rounds", type=int, default=9, help="--layer-norm: chunks of each")
     parser.add_argument("--worker", nargs=4, help=argparse.SUPPRESS)
+    parser.add_argument("--ln-worker", nargs=4, help=argparse.SUPPRESS)
     args = parser.parse_args()
+    args.steps = args.steps or (200 if args.layer_norm else 1000)
     if args.worker:
         env, k, steps, repeats = args.worker
         print(json.dumps(measure(env, int(k), int(steps), int(repeats))))
         return
+    if args.ln_worker:
+        env, k, steps, rounds = args.ln_worker
+        print(json.dumps(measure_layer_norm(env, int(k), int(steps), int(rounds))))
+        return
 
     import machine  # benchmarks/machine.py, beside this file
+
+    if args.layer_norm:
+        print(machine.host_line())
+        for line in layer_norm_table(SHAPES, 10, args.steps, args.rounds):
+            print(line, flush=True)
+        return
     from kernels import gflops as shape_gflops
 
     print(machine.host_line())

@@ -1,0 +1,222 @@
+"""The LayerNorm critics' hand-written gradient against LayerNorm then ReLU written out and
+differentiated by JAX: values and gradients, one layer and whole ensembles, large offsets."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from eabc import networks
+
+RTOL = 1e-5
+
+
+def reference_layer_norm_relu(h, scale, offset):
+    """The formula the networks computed before the hand-written gradient (two-pass variance,
+    automatic differentiation): what ``networks.layer_norm_relu`` must equal."""
+    mean = h.mean(axis=-1, keepdims=True)
+    var = ((h - mean) ** 2).mean(axis=-1, keepdims=True)
+    h = (h - mean) * jax.lax.rsqrt(var + networks.LAYER_NORM_EPS)
+    return jax.nn.relu(h * scale + offset)
+
+
+def reference_ensemble_mlp(params, x):
+    """``ensemble_mlp`` as it was: one product for the first layer, the reference LayerNorm."""
+    n = networks.num_layers(params)
+    k, fan_in, width = params["w0"].shape
+    if x.ndim == 3:
+        h = jnp.einsum("kbi,kio->kbo", x, params["w0"]) + params["b0"][:, None, :]
+    else:
+        w0 = params["w0"].transpose(1, 0, 2).reshape(fan_in, k * width)
+        h = (x @ w0).reshape(-1, k, width).transpose(1, 0, 2) + params["b0"][:, None, :]
+    for layer in range(1, n):
+        scale, offset = params[f"g{layer - 1}"], params[f"h{layer - 1}"]
+        h = reference_layer_norm_relu(h, scale[:, None, :], offset[:, None, :])
+        h = jnp.einsum("kbi,kio->kbo", h, params[f"w{layer}"]) + params[f"b{layer}"][:, None, :]
+    return h
+
+
+def assert_close(got, want, rtol=RTOL):
+    """Elementwise within ``rtol`` of the larger of the value and the array's typical size (the
+    two sum in different orders, so entries near zero differ by a few float32 ulps of the
+    rest)."""
+    got, want = np.asarray(got, np.float64), np.asarray(want, np.float64)
+    assert got.shape == want.shape
+    scale = np.maximum(np.abs(want), np.sqrt(np.mean(want**2)) + 1e-30)
+    assert np.max(np.abs(got - want) / scale) <= rtol, np.max(np.abs(got - want) / scale)
+
+
+def value_and_grads(fn, args, cotangent):
+    """``fn(*args)`` and the gradient of ``<fn(*args), cotangent>`` with respect to every arg,
+    both compiled (as training runs them)."""
+    out = jax.jit(fn)(*args)
+    grads = jax.jit(jax.grad(lambda *a: jnp.vdot(fn(*a), cotangent), range(len(args))))(*args)
+    return out, grads
+
+
+def random_layer(key, shape, offset_size):
+    """``h`` with a common offset per row of ``offset_size`` (the one-pass variance's worst case),
+    scale around 1 with some signs flipped, offset around 0: some units inactive."""
+    k_h, k_o, k_s, k_b, k_c = jax.random.split(key, 5)
+    h = jax.random.normal(k_h, shape) * 2.0
+    h = h + offset_size * jax.random.uniform(k_o, (*shape[:-1], 1), minval=0.5, maxval=1.0)
+    side = (*shape[:-2], 1, shape[-1])
+    scale = 1.0 + 0.5 * jax.random.normal(k_s, side)
+    offset = 0.5 * jax.random.normal(k_b, side)
+    return (h, scale, offset), jax.random.normal(k_c, shape)
+
+
+@pytest.mark.parametrize("offset_size", [0.0, 30.0])
+@pytest.mark.parametrize("shape", [(10, 64, 256), (32, 48), (3, 16, 7)])
+def test_layer_norm_relu_equals_the_formula_in_value_and_gradient(shape, offset_size):
+    key = jax.random.PRNGKey(len(shape) + int(offset_size))
+    args, cotangent = random_layer(key, shape, offset_size)
+    got, got_grads = value_and_grads(networks.layer_norm_relu, args, cotangent)
+    want, want_grads = value_and_grads(reference_layer_norm_relu, args, cotangent)
+    assert 0.2 < float(jnp.mean(want > 0)) < 0.8  # both sides of the ReLU are exercised
+    assert_close(got, want)
+    for g, w in zip(got_grads, want_grads):
+        assert_close(g, w)
+
+
+def float64_layer_norm_relu(h, scale, offset, cotangent, active):
+    """Value and gradients (h, scale, offset) of ``<relu(LayerNorm(h) scale + offset), cot>``
+    in float64 NumPy, the textbook gradient (checked against finite differences below); the
+    ReLU's gradient passes where ``active`` (float32 and float64 may disagree on which side of
+    the kink a unit lies, and there the gradients differ entirely)."""
+    h, scale, offset, cotangent = (np.asarray(a, np.float64) for a in (h, scale, offset, cotangent))
+    xhat = (h - h.mean(-1, keepdims=True)) / np.sqrt(h.var(-1, keepdims=True) + 1e-5)
+    pre = xhat * scale + offset
+    dpre = np.where(active, cotangent, 0.0)
+    g = dpre * scale
+    dh = (g - g.mean(-1, keepdims=True) - xhat * (g * xhat).mean(-1, keepdims=True)) / np.sqrt(
+        h.var(-1, keepdims=True) + 1e-5
+    )
+    return np.maximum(pre, 0.0), (
+        dh,
+        (dpre * xhat).sum(-2, keepdims=True),
+        dpre.sum(-2, keepdims=True),
+    )
+
+
+def relative_error(got, want):
+    got, want = np.asarray(got, np.float64), np.asarray(want, np.float64)
+    return np.max(np.abs(got - want) / np.maximum(np.abs(want), np.sqrt(np.mean(want**2))))
+
+
+@pytest.mark.parametrize("shape", [(10, 64, 256), (32, 48), (3, 16, 7)])
+def test_large_offsets_lose_no_more_than_the_formula(shape):
+    """Rows offset by 500 of their standard deviations: float32 inputs then carry only about 4
+    significant digits of their spread, so both versions are off the exact answer by about 1e-4,
+    and may differ from each other by as much. A one-pass variance (E[h^2] - E[h]^2) would be off
+    by 100% here; this one must be about as close to the float64 answer as the formula."""
+    args, cotangent = random_layer(jax.random.PRNGKey(len(shape)), shape, 1000.0)
+    got, got_grads = value_and_grads(networks.layer_norm_relu, args, cotangent)
+    want, want_grads = value_and_grads(reference_layer_norm_relu, args, cotangent)
+    exact, exact_grads = float64_layer_norm_relu(*args, cotangent, np.asarray(want) > 0)
+    assert_close(got, want)  # the forward pass computes the same centred values
+    for name, g, w, e in zip(
+        ("value", "h", "scale", "offset"),
+        (got, *got_grads),
+        (want, *want_grads),
+        (exact, *exact_grads),
+    ):
+        assert relative_error(g, e) <= 3 * relative_error(w, e) + 1e-6, name
+        assert relative_error(g, e) < 1e-3, name
+
+
+def test_layer_norm_relu_gradient_matches_finite_differences():
+    (h, scale, offset), cotangent = random_layer(jax.random.PRNGKey(7), (2, 5, 6), 3.0)
+    h, scale, offset, cotangent = (np.asarray(a, np.float64) for a in (h, scale, offset, cotangent))
+
+    def loss(h):  # float64 NumPy: LayerNorm then ReLU, summed against the cotangent
+        mean = h.mean(-1, keepdims=True)
+        x = (h - mean) / np.sqrt(h.var(-1, keepdims=True) + networks.LAYER_NORM_EPS)
+        return np.sum(np.maximum(x * scale + offset, 0.0) * cotangent)
+
+    eps, numeric = 1e-6, np.zeros_like(h)
+    for index in np.ndindex(h.shape):
+        step = np.zeros_like(h)
+        step[index] = eps
+        numeric[index] = (loss(h + step) - loss(h - step)) / (2 * eps)
+    grad = jax.grad(lambda h: jnp.vdot(networks.layer_norm_relu(h, scale, offset), cotangent))
+    np.testing.assert_allclose(grad(jnp.asarray(h, jnp.float32)), numeric, rtol=2e-3, atol=2e-4)
+
+
+def layer_norm_critic(key, k, sizes, bias_offset):
+    """An ensemble with LayerNorm whose scales, offsets and biases are not at their initial values
+    (``bias_offset`` shifts every hidden pre-activation by a common amount)."""
+    params = networks.init_mlp(key, sizes, num_members=k, layer_norm=True)
+    keys = iter(jax.random.split(key, len(params)))
+    for name in list(params):
+        noise = jax.random.normal(next(keys), params[name].shape)
+        if name[0] == "g":
+            params[name] = params[name] + 0.5 * noise
+        elif name[0] in "hb":
+            params[name] = params[name] + 0.3 * noise
+        if name[0] == "b" and name != f"b{len(sizes) - 2}":
+            params[name] = params[name] + bias_offset
+    return params
+
+
+@pytest.mark.parametrize("bias_offset", [0.0, 20.0])
+@pytest.mark.parametrize("per_member_input", [False, True])
+def test_ensemble_equals_the_formula_in_value_and_gradient(bias_offset, per_member_input):
+    k, obs_act, batch = 10, 14, 64
+    params = layer_norm_critic(jax.random.PRNGKey(1), k, (obs_act, 256, 256, 1), bias_offset)
+    shape = (k, batch, obs_act) if per_member_input else (batch, obs_act)
+    x = 2.0 * jax.random.normal(jax.random.PRNGKey(2), shape)
+    cotangent = jax.random.normal(jax.random.PRNGKey(3), (k, batch, 1))
+    got, (got_params, got_x) = value_and_grads(networks.ensemble_mlp, (params, x), cotangent)
+    want, (want_params, want_x) = value_and_grads(reference_ensemble_mlp, (params, x), cotangent)
+    assert_close(got, want)
+    assert_close(got_x, want_x)
+    assert got_params.keys() == want_params.keys()
+    for name in want_params:
+        assert_close(got_params[name], want_params[name])
+
+
+def test_single_network_and_vmapped_seeds_equal_the_formula():
+    """``mlp`` with LayerNorm (scales of shape [W]) and an ensemble vmapped over seeds, as
+    ``train_chunk_seeds`` runs it."""
+    params = networks.init_mlp(jax.random.PRNGKey(4), (5, 32, 32, 3), layer_norm=True)
+    params = {
+        n: p + 0.3 * jax.random.normal(jax.random.PRNGKey(i), p.shape)
+        for i, (n, p) in enumerate(params.items())
+    }
+    x = jax.random.normal(jax.random.PRNGKey(5), (16, 5))
+
+    def reference_mlp(params, x):
+        for layer in range(3):
+            x = x @ params[f"w{layer}"] + params[f"b{layer}"]
+            if layer < 2:
+                x = reference_layer_norm_relu(x, params[f"g{layer}"], params[f"h{layer}"])
+        return x
+
+    cotangent = jax.random.normal(jax.random.PRNGKey(6), (16, 3))
+    got, got_grads = value_and_grads(networks.mlp, (params, x), cotangent)
+    want, want_grads = value_and_grads(reference_mlp, (params, x), cotangent)
+    assert_close(got, want)
+    for g, w in zip(jax.tree.leaves(got_grads), jax.tree.leaves(want_grads)):
+        assert_close(g, w)
+
+    seeds = jax.vmap(lambda key: layer_norm_critic(key, 4, (6, 16, 16, 1), 0.0))(
+        jax.random.split(jax.random.PRNGKey(8), 3)
+    )
+    x = jax.random.normal(jax.random.PRNGKey(9), (3, 8, 6))
+    cotangent = jax.random.normal(jax.random.PRNGKey(10), (3, 4, 8, 1))
+    vmapped = lambda f: jax.vmap(f)  # noqa: E731
+    got, got_grads = value_and_grads(vmapped(networks.ensemble_mlp), (seeds, x), cotangent)
+    want, want_grads = value_and_grads(vmapped(reference_ensemble_mlp), (seeds, x), cotangent)
+    assert_close(got, want)
+    for g, w in zip(jax.tree.leaves(got_grads), jax.tree.leaves(want_grads)):
+        assert_close(g, w)
+
+
+def test_nan_inputs_stay_nan():
+    """A diverged pre-activation must not be hidden: the run's NaN check reads the Q values."""
+    h = jnp.ones((2, 3, 8)).at[0, 1, 2].set(jnp.nan)
+    out = networks.layer_norm_relu(h, jnp.ones((2, 1, 8)), jnp.zeros((2, 1, 8)))
+    assert bool(jnp.all(jnp.isnan(out[0, 1]))) and not bool(jnp.any(jnp.isnan(out[1])))
