@@ -181,7 +181,8 @@ def train_plan(cmd: Train) -> dict[str, str]:
         ):
             size = generate.default_size(config.dataset)
             dataset_name, env_id = config.dataset, None
-            data = f"{config.dataset}: made first into {path} ({size:,} transitions, 1-8 minutes)"
+            took = generate.making_time(config.dataset)
+            data = f"{config.dataset}: made first into {path} ({size:,} transitions, {took})"
         else:
             dataset = sources.load_dataset(config.dataset, config.cache_dir)
             dataset_name, env_id = dataset.name, dataset.env_id

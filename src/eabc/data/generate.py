@@ -107,6 +107,12 @@ RECIPES = {
 }
 
 
+def making_time(name: str) -> str:
+    """About how long making the built-in dataset ``name`` takes on one core of a busy 2-core
+    machine (AntMaze: 110-125 s per 100K transitions measured, 10 environments at once)."""
+    return "15-25 minutes" if tasks.parse_task(name)[0] == "antmaze" else "1-8 minutes"
+
+
 def default_size(name: str) -> int:
     env, kind = tasks.parse_task(name)
     if env == "antmaze":
