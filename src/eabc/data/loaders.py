@@ -200,6 +200,7 @@ def load_minari(dataset_id: str) -> Dataset:
         env_id=env_spec.id if env_spec is not None else None,
         ref_min_score=_float(metadata.get("ref_min_score")),
         ref_max_score=_float(metadata.get("ref_max_score")),
+        reward_offset=tasks.reward_offset(tasks.parse_task(dataset_id)),
         metadata={"source": "minari", "minari_id": dataset_id},
     )
 
