@@ -26,7 +26,7 @@ def write_run(run_dir, algo, observations, outputs, seed=0):
     normalizer = Normalizer.fit(observations)
     run_dir.mkdir()
     config = {
-        "train": {"algo": algo},
+        "train": {"algo": algo, "dataset": "pendulum.npz", "seed": 0, "steps": 100},
         "agent": {"hidden_dims": [32, 32]},  # what the export checks the actor's shapes against
         "dataset": {"name": "pendulum"},
         "max_action": 2.0,

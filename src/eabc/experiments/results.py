@@ -4,9 +4,10 @@
 
 - ``runs``: one row per run directory: ``run_id, run_dir, dataset, env, kind, algo, seed,
   variant`` and the algorithm settings (``num_critics, confidence_level, pessimism``), then
-  ``status`` (done, partial, diverged: stopped on NaN/inf, broken: its config.json or log.csv
-  cannot be read, or damaged: its files contradict each other, e.g. a log.csv cut short or
-  deleted, a summary.json it disagrees with, another run's checkpoint; with why in ``config``;
+  ``status`` (done, partial, diverged: stopped on NaN/inf, broken: its config.json cannot be read
+  or fails its schema (:mod:`eabc.training.run_config`), or its log.csv cannot be read, or
+  damaged: its files contradict each other, e.g. a log.csv cut short or deleted, a summary.json
+  it disagrees with, another run's checkpoint; with why in ``config``;
   ``eabc train --resume`` rebuilds a damaged log from the checkpoint), ``steps``,
   ``steps_target``, ``wall_time_s`` (time in training chunks), ``steps_per_s`` (the median of
   log.csv's per-chunk steps/s: update steps only, no evaluation, no compilation outliers),
@@ -40,7 +41,7 @@ import pandas as pd
 from eabc import pytree
 from eabc.agents import ALGORITHMS
 from eabc.data import tasks
-from eabc.training import identity, provenance
+from eabc.training import identity, provenance, run_config
 from eabc.training.checkpoint import CHECKPOINT, CONFIG, CheckpointError, file_mode, load_raw
 from eabc.training.logger import LOG, log_problem
 from eabc.training.trainer import FINAL_EVALUATIONS, SUMMARY
@@ -62,8 +63,15 @@ def run_dirs(root: Path) -> list[Path]:
     root = Path(root)
     if (root / CONFIG).exists():
         return [root]
-    # A config.json that cannot be read is a broken run, listed as such rather than dropped.
-    return sorted(p.parent for p in root.rglob(CONFIG) if "train" in _read_json(p, {"train": 1}))
+    # Every config.json but an online SAC run's (``eabc sac``: "sac", no "train") is a training
+    # run's; one that cannot be read or fails its schema is listed as broken rather than dropped.
+    return sorted(p.parent for p in root.rglob(CONFIG) if not _online(p))
+
+
+def _online(path: Path) -> bool:
+    """Whether ``path`` is the config.json of an online SAC run (not a training run's)."""
+    config = _read_json(path, {"unreadable": True})
+    return "sac" in config and "train" not in config
 
 
 def _read_json(path: Path, unreadable: dict | None = None) -> dict:
@@ -82,12 +90,13 @@ def _broken_row(run_dir: Path, run_id: str, why: str) -> dict:
 
 def read_run(run_dir: Path, root: Path | None = None) -> tuple[dict, list[dict]]:
     """One run's row and its evaluations, from its directory; status ``broken`` (and why, in
-    ``config``) when its config.json or log.csv cannot be read, ``damaged`` (and why) when its
+    ``config``) when its config.json or log.csv cannot be read or config.json fails its schema, ``damaged`` (and why) when its
     files contradict each other (:func:`_damage`)."""
     run_id = run_dir.name if root is None else str(run_dir.relative_to(root))
-    config = _read_json(run_dir / CONFIG)
-    if not isinstance(config.get("train"), dict) or "algo" not in config["train"]:
-        return _broken_row(run_dir, run_id, f"{run_dir / CONFIG} cannot be read"), []
+    try:
+        config = run_config.read(run_dir)  # its schema, or why not in one line
+    except (OSError, ValueError) as error:
+        return _broken_row(run_dir, run_id, str(error)), []
     try:
         return _read_run(run_dir, run_id, config)
     except (OSError, ValueError, KeyError, TypeError, csv.Error) as error:

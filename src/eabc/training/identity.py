@@ -20,6 +20,7 @@ import uuid
 from pathlib import Path
 from typing import Any
 
+from eabc.training import run_config
 from eabc.training.checkpoint import CHECKPOINT, CONFIG, IDENTITY, CheckpointError
 
 FIELDS = ("run_id", "algo", "seed", "settings", "dataset", "fingerprint")
@@ -36,7 +37,9 @@ def new_run_id() -> str:
 
 def of_config(config: dict) -> dict[str, Any]:
     """The identity of the run whose ``config.json`` is ``config`` (``run_id`` None for a run
-    started before runs had ids)."""
+    started before runs had ids). The settings hash is of the train settings as the file holds
+    them, not filled with defaults: a setting a later version adds leaves older runs' hashes as
+    they were."""
     train, dataset = config.get("train", {}), config.get("dataset", {})
     settings = {
         "algo": train.get("algo"),
@@ -71,12 +74,25 @@ def checked(raw: dict, run_dir: Path, config: dict, warn: bool = True) -> dict:
         return rest
     expected = of_config(config)
     differ = [f for f in FIELDS if _text(recorded.get(f)) != _text(expected[f])]
+    if differ == ["run_id"] and not expected["run_id"]:  # the key alone deleted by hand
+        raise CheckpointError(
+            f"{Path(run_dir) / CONFIG} has no run_id but {Path(run_dir) / CHECKPOINT} belongs to "
+            f"run {recorded.get('run_id')}, which agrees with it in everything else: put "
+            f'"run_id": "{recorded.get("run_id")}" back into config.json'
+        )
     if differ:
+        absent = [k for k in run_config.train_model().model_fields if k not in config["train"]]
+        lacks = (
+            f" ({Path(run_dir) / CONFIG} lacks train.{', train.'.join(absent)}: put back what "
+            "the run was started with)"
+            if "settings" in differ and absent
+            else ""
+        )
         raise CheckpointError(
             f"{Path(run_dir) / CHECKPOINT} belongs to run {describe(recorded)} but "
             f"{Path(run_dir) / CONFIG} is run {describe(expected)} (they differ in "
-            f"{', '.join(differ)}): a checkpoint is used only beside its own run's config.json; "
-            "put this run's own files back, or delete the checkpoint and resume with --restart "
+            f"{', '.join(differ)}){lacks}: a checkpoint is used only beside its own run's "
+            "config.json; put this run's own files back, or delete the checkpoint and resume with --restart "
             "to train the run config.json describes again from step 0"
         )
     return rest

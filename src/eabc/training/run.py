@@ -32,8 +32,8 @@ from eabc.agents import Algorithm, get_algorithm, validation
 from eabc.data.dataset import Dataset, DatasetError, Normalizer
 from eabc.data.sources import load_dataset
 from eabc.evaluation import Evaluator, check_spaces
-from eabc.training import checkpoint, identity, logger
-from eabc.training.checkpoint import CONFIG, read_config
+from eabc.training import checkpoint, identity, logger, run_config
+from eabc.training.checkpoint import CONFIG
 from eabc.training.chunks import device_data
 from eabc.training.lock import RunLock
 from eabc.training.logger import CURVE, LOG
@@ -189,7 +189,7 @@ def start(
         "max_action": run.max_action,
     }
     checkpoint.save_json(run_dir / CONFIG, saved)
-    run.identity = identity.of_config(read_config(run_dir))  # as every reader will see it
+    run.identity = identity.of_config(run_config.read(run_dir))  # as every reader will see it
     if run.algorithm.pretrain is not None:
         try:
             _pretrain(run)
@@ -304,7 +304,7 @@ def _extend(run: Run, steps: int) -> Run:
             f"{run.run_dir} has trained {run.step} steps, more than the {steps} asked; use "
             "another run directory for a shorter run"
         )
-    saved = read_config(run.run_dir)
+    saved = run_config.read(run.run_dir)
     saved["train"]["steps"] = steps
     checkpoint.save_json(run.run_dir / CONFIG, saved)
     return dataclasses.replace(run, config=dataclasses.replace(run.config, steps=steps))
@@ -359,7 +359,7 @@ def lost_progress(run_dir: Path, steps: int, checkpoint_interval: int) -> str | 
 
 
 def _resume(run_dir: Path, dataset: Dataset | None, write: bool, restart: bool = False) -> Run:
-    saved = read_config(run_dir)
+    saved = run_config.read(run_dir)  # checked by its schema before anything uses it
     config = TrainConfig(**saved["train"])
     has_checkpoint = (run_dir / checkpoint.CHECKPOINT).exists()
     if has_checkpoint and restart:
@@ -381,12 +381,13 @@ def _resume(run_dir: Path, dataset: Dataset | None, write: bool, restart: bool =
     algorithm = get_algorithm(config.algo)
     agent_config = _agent_config_from_json(algorithm, saved["agent"])
     dataset = dataset if dataset is not None else load_dataset(config.dataset, config.cache_dir)
-    if dataset.size != saved["dataset"]["size"]:
+    recorded = saved.get("dataset", {})
+    if recorded.get("size") is not None and dataset.size != recorded["size"]:
         raise DatasetError(
             f"{config.dataset} now has {dataset.size} transitions, but the run was trained on "
-            f"{saved['dataset']['size']}; resume needs the same data"
+            f"{recorded['size']}; resume needs the same data"
         )
-    expected = saved["dataset"].get("fingerprint")  # absent in runs from before the check
+    expected = recorded.get("fingerprint")  # absent in runs from before the check
     if expected is not None and dataset.fingerprint() != expected:
         raise DatasetError(
             f"{config.dataset} is not the data {run_dir} was trained on (its content fingerprint "
@@ -497,7 +498,12 @@ def read_checkpoint(run_dir: str | Path) -> tuple[dict, Algorithm, dict]:
     config.json, its state layout against the algorithm's, and its actor's and normaliser's
     structure, shapes and dtypes against what the run's settings make."""
     run_dir = Path(run_dir)
-    config = read_config(run_dir)
+    config = run_config.read(run_dir)
+    if config.get("max_action") is None:  # the policy's output scale: no guess
+        raise run_config.ConfigError(
+            f"{run_dir / CONFIG}: max_action is missing (every eabc writes it); put back the "
+            "evaluation environment's action bound (its action_space.high), e.g. 1.0"
+        )
     algorithm = get_algorithm(config["train"]["algo"])
     raw = identity.checked(checkpoint.load_raw(run_dir), run_dir, config)
     raw = checkpoint.check_layout(raw, run_dir, algorithm.name, algorithm.state_layout)

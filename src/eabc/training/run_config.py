@@ -1,0 +1,174 @@
+"""A training run's ``config.json``, checked by one model wherever it is read.
+
+Resume, evaluate, ``load_policy``, the ONNX export and ``eabc results`` read a run's config.json
+through :func:`read`, which checks it against :class:`RunConfigFile` before anything uses it: each
+key of its type and range, no key this package never writes, the train settings together as
+:class:`~eabc.training.run.TrainConfig` checks them and the agent settings as the algorithm's own
+(:mod:`eabc.agents.validation`). A hand-edited file (``{}``, a key missing or added, a string
+where a number belongs, a list where a mapping belongs) is refused in one line that names the file,
+the key and what to do (:class:`ConfigError`), rather than raising ``KeyError`` deep in a reader.
+
+Files of earlier versions keep loading: every version wrote ``train`` with all of TrainConfig's
+fields, ``agent``, ``dataset`` and ``max_action``; ``run_id`` (runs from before run ids) and
+``dataset.fingerprint`` (runs from before the data check) may be absent, and agent settings a later
+version added take the preset's value (those it removed are ignored), as resume always did. Of the
+train settings only what identifies a run (``dataset``, ``algo``, ``seed``) and its length
+(``steps``) are required; another that is absent reads as TrainConfig's default. A run whose
+checkpoint records its identity is still refused then when the settings hash differs
+(:mod:`eabc.training.identity` names the absent keys).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import typing
+from pathlib import Path
+from typing import Any
+
+import pydantic
+
+from eabc import ranges
+from eabc.agents import ALGORITHMS, validation
+from eabc.training.checkpoint import CONFIG, read_config
+
+REQUIRED = ("dataset", "algo", "seed", "steps")
+"""Train settings without which a config.json does not say which run it is or how long it is."""
+_REDO = "or restore config.json from a copy"
+
+
+class ConfigError(ValueError):
+    """A config.json this package cannot use; the message names the file, the key and what to do."""
+
+
+class _Strict(pydantic.BaseModel):
+    """No conversion (``"200"`` is not 200, ``true`` is not 1), no key the package never wrote."""
+
+    model_config = pydantic.ConfigDict(extra="forbid", strict=True, frozen=True)
+
+
+class DatasetSection(_Strict):
+    """What the run was trained on, recorded when it started."""
+
+    name: str | None = None
+    """The dataset's name (hopper-medium, or a file's stem)."""
+    size: ranges.NonNegative | None = None
+    """Its number of transitions: resume refuses data of another size."""
+    fingerprint: str | None = None
+    """Its content's SHA-256 (absent in runs from before the check)."""
+    env_id: str | None = None
+    """The Gymnasium id the run evaluates in."""
+    ref_min_score: float | None = None
+    """The return that scores 0 (None: the data has no reference scores)."""
+    ref_max_score: float | None = None
+    """The return that scores 100."""
+
+
+class RunConfigFile(_Strict):
+    """The whole of a training run's config.json."""
+
+    run_id: str | None = None
+    """The run's random id (:mod:`eabc.training.identity`; absent in runs from before ids)."""
+    train: dict[str, Any]
+    """TrainConfig's fields (:func:`train_model` checks them)."""
+    agent: dict[str, Any] = {}
+    """The algorithm's resolved settings (checked by the algorithm's own validation)."""
+    dataset: DatasetSection = DatasetSection()
+    """What the run was trained on."""
+    max_action: ranges.PositiveNumber | None = None
+    """The environment's action bound (the policy's output scale)."""
+
+
+def _train_config() -> type:
+    from eabc.training.run import TrainConfig  # noqa: PLC0415 (run.py reads configs through here)
+
+    return TrainConfig
+
+
+@functools.cache
+def train_model() -> type[pydantic.BaseModel]:
+    """TrainConfig's fields as a strict model: :data:`REQUIRED` required, the others with
+    TrainConfig's defaults; counts and intervals integers >= 1, the seed in its range, the algorithm
+    one this package has."""
+    config = _train_config()
+    hints = typing.get_type_hints(config)
+    fields: dict[str, Any] = {}
+    for field in dataclasses.fields(config):
+        hint = hints[field.name]
+        if field.name == "seed":
+            hint = ranges.Seed
+        elif hint is int:
+            hint = ranges.Positive
+        elif hint == int | None:
+            hint = ranges.Positive | None
+        fields[field.name] = (hint, ... if field.name in REQUIRED else field.default)
+
+    def known(value: str) -> str:
+        if value not in ALGORITHMS:
+            raise ValueError(
+                f"{value!r} is not an algorithm of eabc; it has {', '.join(ALGORITHMS)}"
+            )
+        return value
+
+    return pydantic.create_model(
+        "TrainSection",
+        __base__=_Strict,
+        __validators__={"_algo": pydantic.field_validator("algo")(known)},
+        **fields,
+    )
+
+
+def check(config: dict, path: Path) -> dict:
+    """``config`` (the JSON object read from ``path``) if it is a run's config.json, else
+    :class:`ConfigError` in one line naming ``path``, the first bad key and what to do."""
+    try:
+        RunConfigFile.model_validate(config)
+    except pydantic.ValidationError as error:
+        raise ConfigError(_message(error.errors()[0], path)) from None
+    try:
+        train_model().model_validate(config["train"])
+    except pydantic.ValidationError as error:
+        first = error.errors()[0]
+        raise ConfigError(_message({**first, "loc": ("train", *first["loc"])}, path)) from None
+    train = config["train"]
+    try:  # the settings together (intervals that divide), as training checks them
+        _train_config()(**{**train, "cache_dir": None})
+    except ValueError as error:
+        raise ConfigError(f"{path}: train: {error}; fix it by hand {_REDO}") from None
+    algorithm = ALGORITHMS[train["algo"]]
+    known = {f.name for f in dataclasses.fields(algorithm.preset)}
+    settings = {
+        k: tuple(v) if isinstance(v, list) else v for k, v in config.get("agent", {}).items()
+    }
+    try:  # settings of older versions that this one dropped are ignored, as resume does
+        validation.validate(
+            algorithm.preset, algorithm.name, {k: v for k, v in settings.items() if k in known}
+        )
+    except validation.SettingError as error:
+        raise ConfigError(
+            f"{path}: agent: {error}; put back the value the run was started with {_REDO}"
+        ) from None
+    return config
+
+
+def _message(error: dict, path: Path) -> str:
+    where = ".".join(str(part) for part in error["loc"])
+    kind, text = error["type"], error["msg"].removeprefix("Value error, ")
+    text = text.replace(" or instance of DatasetSection", "")
+    if kind == "missing":
+        return (
+            f"{path}: {where} is missing; put it back as the run was started (every eabc "
+            f"writes it) {_REDO}"
+        )
+    if kind == "extra_forbidden":
+        return f"{path}: {where} is not a key of a run's config.json; remove it"
+    got = "" if kind == "value_error" else f", got {error.get('input')!r}"
+    return (
+        f"{path}: {where}: {text[0].lower()}{text[1:]}{got}; put back the value the run was "
+        f"started with {_REDO}"
+    )
+
+
+def read(run_dir: str | Path) -> dict:
+    """A training run's config.json, checked (:func:`check`); the object as the file holds it."""
+    return check(read_config(run_dir), Path(run_dir) / CONFIG)
