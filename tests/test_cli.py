@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -138,3 +139,30 @@ def test_train_help_names_every_algorithm(capsys):
     help_text = " ".join(capsys.readouterr().out.split())
     missing = [name for name in ALGORITHMS if name not in help_text]
     assert not missing, f"eabc train --help does not mention {missing}"
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["train", "--pessimism", "bad"],
+         "error: --pessimism 'bad' is not one of its choices: mean-std, min, min2"),
+        (["sweep", "--preset", "nope"],
+         "error: --preset 'nope' is not one of its choices: ablation-k, .*, table6"),
+        (["train", "--algo", "nope"], "error: --algo: unknown algorithm 'nope'; choose one of eabc"),
+        (["train", "--steps", "abc"], "error: --steps must be an integer, got 'abc'"),
+        (["train", "--num-critics=x"], "error: --num-critics must be an integer, got 'x'"),
+        (["sweep", "--seeds", "0", "x"], "error: --seeds must be whole numbers, got '0 x'"),
+        (["train", "--steps"], "error: --steps needs a value"),
+        (["train", "--progress", "maybe"], "error: unrecognized argument.* maybe; see `eabc train"),
+        (["evaluate"], "error: eabc evaluate needs RUN_DIR"),
+        (["data", "make"], "error: eabc data make needs NAME"),
+    ],
+)  # fmt: skip
+def test_a_bad_flag_value_is_one_error_line_naming_the_flag_and_the_choices(argv, message, capsys):
+    """tyro drew a box of many lines (the flag's whole help inside); now one line as for
+    numbers out of range."""
+    with pytest.raises(SystemExit) as exit_:
+        main(argv)
+    assert isinstance(exit_.value.code, str) and "\n" not in exit_.value.code
+    assert re.fullmatch(message + ".*", exit_.value.code), exit_.value.code
+    assert capsys.readouterr().err == ""  # no box beside it

@@ -34,7 +34,7 @@ from eabc.cli.experiments import (
     run_sweep,
     sweep_spec,
 )
-from eabc.cli.options import _checked, check_flags, parse_settings
+from eabc.cli.options import _checked, check_flags, one_line_errors, parse_settings
 from eabc.cli.train import (
     Evaluate,
     ExportPolicy,
@@ -107,8 +107,8 @@ GROUPS: dict[str, tuple[dict[str, type], str]] = {
 
 
 def parse(argv: list[str]):
-    """The command ``eabc ARGV`` names, parsed and checked as ``main`` does before running it
-    (a bad flag exits as argparse does; a bad value raises ``ValueError`` naming the flag)."""
+    """The command ``eabc ARGV`` names, parsed and checked as ``main`` does before running it: a
+    bad flag or value raises ``ValueError`` in one line naming the flag (``--help`` exits)."""
     commands = COMMANDS
     prog = "eabc"
     description = "EABC: ensemble-based offline RL with adaptive behaviour cloning."
@@ -116,13 +116,15 @@ def parse(argv: list[str]):
         commands, description = GROUPS[argv[0]]
         prog = f"eabc {argv[0]}"
         argv = argv[1:]
-    cmd = tyro.extras.subcommand_cli_from_dict(
-        commands,
-        args=argv,
-        prog=prog,  # not the interpreter's path to the entry point
-        description=description,
-        config=(tyro.conf.DisallowNone,),  # --env STR, not --env {None}|STR
-    )
+    command = f"{prog} {argv[0]}" if argv[:1] and argv[0] in commands else prog
+    with one_line_errors(argv, command):  # a bad value: one error line, not tyro's box
+        cmd = tyro.extras.subcommand_cli_from_dict(
+            commands,
+            args=argv,
+            prog=prog,  # not the interpreter's path to the entry point
+            description=description,
+            config=(tyro.conf.DisallowNone,),  # --env STR, not --env {None}|STR
+        )
     if isinstance(cmd, Train | Sac):  # checked here, so that errors name the flags
         config_class = TrainConfig if isinstance(cmd, Train) else SACTrainConfig
         cmd = dataclasses.replace(cmd, config=_checked(cmd.config, config_class))

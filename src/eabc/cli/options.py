@@ -3,6 +3,7 @@ contracts, and ``KEY=VALUE`` settings."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import operator
@@ -52,6 +53,77 @@ def check_flags(cmd) -> None:
         if ranges.constrained(hints[field.name]):
             flag = "--" + field.name.replace("_", "-")
             ranges.check(getattr(cmd, field.name), hints[field.name], flag)
+
+
+_KINDS = {"INT": "an integer", "FLOAT": "a number", "[INT [INT ...]]": "whole numbers",
+          "[FLOAT [FLOAT ...]]": "numbers"}  # fmt: skip
+"""What tyro's metavars mean, in words."""
+
+
+class FlagError(ValueError):
+    """A flag tyro could not parse, said in one line (its value, and what it takes)."""
+
+
+@contextlib.contextmanager
+def one_line_errors(argv: list[str], prog: str):
+    """tyro's parse errors as one :class:`FlagError` line naming the flag, the bad value and what
+    the flag takes (its choices, or the kind of number), where tyro would draw a box of many
+    lines. tyro's hook for this is private (``tyro._errors``, tyro >= 1.0); without it tyro's own
+    box is printed, as before."""
+    errors = getattr(tyro, "_errors", None)
+    if errors is None or not hasattr(errors, "on_parse_error"):
+        yield
+        return
+
+    def flag_of(argument) -> str:
+        if argument.is_positional() or not argument.lowered.name_or_flags:
+            return str(argument.lowered.metavar)
+        return "/".join(argument.lowered.name_or_flags)
+
+    def hook(event) -> None:
+        argument = getattr(event, "argument", None)
+        if isinstance(event, errors.InvalidChoice):
+            choices = sorted(c for c in event.choices if c != "None")
+            raise FlagError(
+                f"{flag_of(argument)} {event.value!r} is not one of its choices: "
+                f"{', '.join(choices)}"
+            )
+        if isinstance(event, errors.InstantiationFailure) and argument is not None:
+            flag = flag_of(argument)
+            metavar = str(argument.lowered.metavar)
+            kind = _KINDS.get(metavar, f"a value of the form {metavar}")
+            value = _given(argv, argument.lowered.name_or_flags)
+            got = f", got {value!r}" if value is not None else f" ({event.message.splitlines()[0]})"
+            raise FlagError(f"{flag} must be {kind}{got}")
+        if isinstance(event, errors.BadValue) and event.reason == "too_few_values":
+            raise FlagError(f"{flag_of(argument)} needs a value; see `{prog} --help`")
+        if isinstance(event, errors.UnrecognizedArgs):
+            raise FlagError(
+                f"unrecognized argument(s) {' '.join(event.tokens)}; see `{prog} --help` for "
+                "the flags and their values"
+            )
+        if isinstance(event, errors.MissingArgs):
+            missing = [flag_of(context.arg) for context in event.missing_arguments]
+            raise FlagError(f"{prog} needs {', '.join(missing)}; see `{prog} --help`")
+
+    with errors.on_parse_error(hook):
+        yield
+
+
+def _given(argv: list[str], names: tuple[str, ...]) -> str | None:
+    """The value ``argv`` gives the flag ``names`` (``--flag VALUE...`` or ``--flag=VALUE``)."""
+    for i, token in enumerate(argv):
+        for name in names:
+            if token.startswith(name + "="):
+                return token.split("=", 1)[1]
+            if token == name:
+                values = []
+                for value in argv[i + 1 :]:
+                    if value.startswith("--"):
+                        break
+                    values.append(value)
+                return " ".join(values)
+    return None
 
 
 TrainOptions = _parsed_unchecked(TrainConfig)

@@ -28,7 +28,7 @@ import jax
 import numpy as np
 
 from eabc import paths, pytree, ranges
-from eabc.agents import Algorithm, get_algorithm, validation
+from eabc.agents import ALGORITHMS, Algorithm, get_algorithm, validation
 from eabc.data.dataset import Dataset, DatasetError, Normalizer
 from eabc.data.sources import load_dataset
 from eabc.evaluation import Evaluator, check_spaces
@@ -72,6 +72,10 @@ class TrainConfig:
     """Where built-in datasets are made (default $EABC_CACHE_DIR or ~/.cache/eabc)."""
 
     def __post_init__(self):
+        if self.algo not in ALGORITHMS:
+            raise ValueError(
+                f"algo: unknown algorithm {self.algo!r}; choose one of {', '.join(ALGORITHMS)}"
+            )
         if self.batch_size is None:  # set here, so config.json records the size trained with
             object.__setattr__(self, "batch_size", get_algorithm(self.algo).batch_size)
         positive = ("steps", "batch_size", "eval_interval", "eval_episodes", "log_interval",
