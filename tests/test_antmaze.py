@@ -406,3 +406,16 @@ def test_antmaze_names_settings_and_errors(made):
         antmaze.AntMazeEnv("tiny")
     with pytest.raises(DatasetError, match="is AntMaze data, evaluated on eabc/AntMaze-UMaze-v0"):
         check_spaces(make_env("Hopper-v4"), loaders.load_file(made[0]))
+
+
+def test_table5_preset_is_the_papers_antmaze_grid_and_table1_keeps_to_mujoco():
+    from eabc.experiments.presets import PRESETS
+    from eabc.experiments.spec import expand
+
+    runs = expand(PRESETS["table5"])
+    assert {r.dataset for r in runs} == {f"antmaze-{kind}" for kind in tasks.ANTMAZE_KINDS}
+    assert {r.algo for r in runs} == {"td3bc", "eabc"} and {r.seed for r in runs} == set(range(5))
+    assert runs[0].train_config().steps == 1_000_000
+    for name in ("table1", "table6", "ablation-k", "ablation-p", "ablation-pess"):
+        datasets = {r.dataset for r in expand(PRESETS[name])}
+        assert len(datasets) == 15 and not any(d.startswith("antmaze") for d in datasets), name

@@ -32,11 +32,19 @@ DATASET_SIZE = 1_000_000
 ActionFn = Callable[[np.ndarray, np.random.Generator], np.ndarray]
 
 
+def mujoco_names() -> list[str]:
+    """The 15 MuJoCo locomotion datasets of the paper's Table 1."""
+    return [f"{env}-{kind}" for env in ("hopper", "halfcheetah", "walker2d") for kind in tasks.KINDS]
+
+
+def antmaze_names() -> list[str]:
+    """The six AntMaze datasets of the paper's Table 5."""
+    return [f"antmaze-{kind}" for kind in tasks.ANTMAZE_KINDS]
+
+
 def builtin_names() -> list[str]:
-    mujoco = [
-        f"{env}-{kind}" for env in ("hopper", "halfcheetah", "walker2d") for kind in tasks.KINDS
-    ]
-    return mujoco + [f"antmaze-{kind}" for kind in tasks.ANTMAZE_KINDS]
+    """Every dataset ``eabc data make`` makes: MuJoCo locomotion, then AntMaze."""
+    return mujoco_names() + antmaze_names()
 
 
 def did_you_mean(name: str) -> str:
