@@ -56,23 +56,28 @@ def value_and_grads(fn, args, cotangent):
     return out, grads
 
 
-def random_layer(key, shape, offset_size):
+def normal(seed, shape, scale=1.0):
+    """Float32 Gaussian test inputs from NumPy: eager jax.random would compile a program per shape,
+    most of these tests' time."""
+    return (scale * np.random.default_rng(seed).standard_normal(shape)).astype(np.float32)
+
+
+def random_layer(seed, shape, offset_size):
     """``h`` with a common offset per row of ``offset_size`` (the one-pass variance's worst case),
     scale around 1 with some signs flipped, offset around 0: some units inactive."""
-    k_h, k_o, k_s, k_b, k_c = jax.random.split(key, 5)
-    h = jax.random.normal(k_h, shape) * 2.0
-    h = h + offset_size * jax.random.uniform(k_o, (*shape[:-1], 1), minval=0.5, maxval=1.0)
+    rng = np.random.default_rng(seed)
     side = (*shape[:-2], 1, shape[-1])
-    scale = 1.0 + 0.5 * jax.random.normal(k_s, side)
-    offset = 0.5 * jax.random.normal(k_b, side)
-    return (h, scale, offset), jax.random.normal(k_c, shape)
+    h = 2.0 * rng.standard_normal(shape) + offset_size * rng.uniform(0.5, 1.0, (*shape[:-1], 1))
+    scale = 1.0 + 0.5 * rng.standard_normal(side)
+    offset = 0.5 * rng.standard_normal(side)
+    args = tuple(jnp.asarray(a, jnp.float32) for a in (h, scale, offset))
+    return args, jnp.asarray(rng.standard_normal(shape), jnp.float32)
 
 
 @pytest.mark.parametrize("offset_size", [0.0, 30.0])
 @pytest.mark.parametrize("shape", [(10, 64, 256), (32, 48), (3, 16, 7)])
 def test_layer_norm_relu_equals_the_formula_in_value_and_gradient(shape, offset_size):
-    key = jax.random.PRNGKey(len(shape) + int(offset_size))
-    args, cotangent = random_layer(key, shape, offset_size)
+    args, cotangent = random_layer(len(shape) + int(offset_size), shape, offset_size)
     got, got_grads = value_and_grads(networks.layer_norm_relu, args, cotangent)
     want, want_grads = value_and_grads(reference_layer_norm_relu, args, cotangent)
     assert 0.2 < float(jnp.mean(want > 0)) < 0.8  # both sides of the ReLU are exercised
@@ -112,7 +117,7 @@ def test_large_offsets_lose_no_more_than_the_formula(shape):
     significant digits of their spread, so both versions are off the exact answer by about 1e-4,
     and may differ from each other by as much. A one-pass variance (E[h^2] - E[h]^2) would be off
     by 100% here; this one must be about as close to the float64 answer as the formula."""
-    args, cotangent = random_layer(jax.random.PRNGKey(len(shape)), shape, 1000.0)
+    args, cotangent = random_layer(len(shape), shape, 1000.0)
     got, got_grads = value_and_grads(networks.layer_norm_relu, args, cotangent)
     want, want_grads = value_and_grads(reference_layer_norm_relu, args, cotangent)
     exact, exact_grads = float64_layer_norm_relu(*args, cotangent, np.asarray(want) > 0)
@@ -128,7 +133,7 @@ def test_large_offsets_lose_no_more_than_the_formula(shape):
 
 
 def test_layer_norm_relu_gradient_matches_finite_differences():
-    (h, scale, offset), cotangent = random_layer(jax.random.PRNGKey(7), (2, 5, 6), 3.0)
+    (h, scale, offset), cotangent = random_layer(7, (2, 5, 6), 3.0)
     h, scale, offset, cotangent = (np.asarray(a, np.float64) for a in (h, scale, offset, cotangent))
 
     def loss(h):  # float64 NumPy: LayerNorm then ReLU, summed against the cotangent
@@ -145,30 +150,33 @@ def test_layer_norm_relu_gradient_matches_finite_differences():
     np.testing.assert_allclose(grad(jnp.asarray(h, jnp.float32)), numeric, rtol=2e-3, atol=2e-4)
 
 
-def layer_norm_critic(key, k, sizes, bias_offset):
+def layer_norm_critic(seed, k, sizes, bias_offset):
     """An ensemble with LayerNorm whose scales, offsets and biases are not at their initial values
-    (``bias_offset`` shifts every hidden pre-activation by a common amount)."""
-    params = networks.init_mlp(key, sizes, num_members=k, layer_norm=True)
-    keys = iter(jax.random.split(key, len(params)))
-    for name in list(params):
-        noise = jax.random.normal(next(keys), params[name].shape)
-        if name[0] == "g":
-            params[name] = params[name] + 0.5 * noise
-        elif name[0] in "hb":
-            params[name] = params[name] + 0.3 * noise
+    (``bias_offset`` shifts every hidden pre-activation by a common amount); ``init_mlp``'s
+    shapes, NumPy's numbers."""
+    shapes = jax.eval_shape(lambda: networks.init_mlp(jax.random.PRNGKey(0), sizes, k, True))
+    rng, params = np.random.default_rng(seed), {}
+    for name, shape in shapes.items():
+        noise = rng.standard_normal(shape.shape)
+        if name[0] == "w":
+            params[name] = noise / np.sqrt(shape.shape[-2])
+        elif name[0] == "g":
+            params[name] = 1.0 + 0.5 * noise
+        else:
+            params[name] = 0.3 * noise
         if name[0] == "b" and name != f"b{len(sizes) - 2}":
             params[name] = params[name] + bias_offset
-    return params
+    return {name: jnp.asarray(p, jnp.float32) for name, p in params.items()}
 
 
 @pytest.mark.parametrize("bias_offset", [0.0, 20.0])
 @pytest.mark.parametrize("per_member_input", [False, True])
 def test_ensemble_equals_the_formula_in_value_and_gradient(bias_offset, per_member_input):
     k, obs_act, batch = 10, 14, 64
-    params = layer_norm_critic(jax.random.PRNGKey(1), k, (obs_act, 256, 256, 1), bias_offset)
+    params = layer_norm_critic(1, k, (obs_act, 256, 256, 1), bias_offset)
     shape = (k, batch, obs_act) if per_member_input else (batch, obs_act)
-    x = 2.0 * jax.random.normal(jax.random.PRNGKey(2), shape)
-    cotangent = jax.random.normal(jax.random.PRNGKey(3), (k, batch, 1))
+    x = jnp.asarray(normal(2, shape, 2.0))
+    cotangent = jnp.asarray(normal(3, (k, batch, 1)))
     got, (got_params, got_x) = value_and_grads(networks.ensemble_mlp, (params, x), cotangent)
     want, (want_params, want_x) = value_and_grads(reference_ensemble_mlp, (params, x), cotangent)
     assert_close(got, want)
@@ -181,12 +189,14 @@ def test_ensemble_equals_the_formula_in_value_and_gradient(bias_offset, per_memb
 def test_single_network_and_vmapped_seeds_equal_the_formula():
     """``mlp`` with LayerNorm (scales of shape [W]) and an ensemble vmapped over seeds, as
     ``train_chunk_seeds`` runs it."""
-    params = networks.init_mlp(jax.random.PRNGKey(4), (5, 32, 32, 3), layer_norm=True)
+    shapes = jax.eval_shape(
+        lambda: networks.init_mlp(jax.random.PRNGKey(0), (5, 32, 32, 3), None, True)
+    )
     params = {
-        n: p + 0.3 * jax.random.normal(jax.random.PRNGKey(i), p.shape)
-        for i, (n, p) in enumerate(params.items())
+        n: jnp.asarray(normal(i, s.shape, 0.3)) + (n[0] == "g")
+        for i, (n, s) in enumerate(shapes.items())
     }
-    x = jax.random.normal(jax.random.PRNGKey(5), (16, 5))
+    x = jnp.asarray(normal(5, (16, 5)))
 
     def reference_mlp(params, x):
         for layer in range(3):
@@ -195,18 +205,19 @@ def test_single_network_and_vmapped_seeds_equal_the_formula():
                 x = reference_layer_norm_relu(x, params[f"g{layer}"], params[f"h{layer}"])
         return x
 
-    cotangent = jax.random.normal(jax.random.PRNGKey(6), (16, 3))
+    cotangent = jnp.asarray(normal(6, (16, 3)))
     got, got_grads = value_and_grads(networks.mlp, (params, x), cotangent)
     want, want_grads = value_and_grads(reference_mlp, (params, x), cotangent)
     assert_close(got, want)
     for g, w in zip(jax.tree.leaves(got_grads), jax.tree.leaves(want_grads)):
         assert_close(g, w)
 
-    seeds = jax.vmap(lambda key: layer_norm_critic(key, 4, (6, 16, 16, 1), 0.0))(
-        jax.random.split(jax.random.PRNGKey(8), 3)
+    seeds = jax.tree.map(
+        lambda *p: jnp.stack(p),
+        *(layer_norm_critic(8 + s, 4, (6, 16, 16, 1), 0.0) for s in range(3)),
     )
-    x = jax.random.normal(jax.random.PRNGKey(9), (3, 8, 6))
-    cotangent = jax.random.normal(jax.random.PRNGKey(10), (3, 4, 8, 1))
+    x = jnp.asarray(normal(9, (3, 8, 6)))
+    cotangent = jnp.asarray(normal(10, (3, 4, 8, 1)))
     vmapped = lambda f: jax.vmap(f)  # noqa: E731
     got, got_grads = value_and_grads(vmapped(networks.ensemble_mlp), (seeds, x), cotangent)
     want, want_grads = value_and_grads(vmapped(reference_ensemble_mlp), (seeds, x), cotangent)
