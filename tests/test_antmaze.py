@@ -419,3 +419,16 @@ def test_table5_preset_is_the_papers_antmaze_grid_and_table1_keeps_to_mujoco():
     for name in ("table1", "table6", "ablation-k", "ablation-p", "ablation-pess"):
         datasets = {r.dataset for r in expand(PRESETS[name])}
         assert len(datasets) == 15 and not any(d.startswith("antmaze") for d in datasets), name
+
+
+def test_reports_lay_antmaze_out_as_table5():
+    import pandas as pd
+
+    from eabc.experiments.labels import dataset_names, paper_table
+
+    names = [f"antmaze-{kind}" for kind in reversed(tasks.ANTMAZE_KINDS)] + ["hopper-medium"]
+    assert dataset_names(pd.DataFrame({"dataset": names})) == [
+        "hopper-medium",
+        *(f"antmaze-{kind}" for kind in tasks.ANTMAZE_KINDS),
+    ]
+    assert paper_table(names[:-1]).startswith("Table 5") and paper_table(names) == "Table 1"

@@ -39,12 +39,21 @@ def display_name(label: str) -> str:
 
 
 def dataset_sort_key(name: str) -> tuple:
-    """Hopper, HalfCheetah, Walker2d, then other environments; random ... expert within each."""
+    """Hopper, HalfCheetah, Walker2d, then other environments; random ... expert within each;
+    AntMaze's in Table 5's order (umaze, umaze-diverse, medium-play, ...)."""
     task = tasks.parse_task(name)
     env, _, kind = name.partition("-") if task is None else (task[0], "", task[1])
     env_rank = ENV_ORDER.index(env) if env in ENV_ORDER else len(ENV_ORDER)
-    kind_rank = KIND_ORDER.index(kind) if kind in KIND_ORDER else len(KIND_ORDER)
+    order = tasks.ANTMAZE_KINDS if env == "antmaze" else KIND_ORDER
+    kind_rank = order.index(kind) if kind in order else len(order)
     return (env_rank, env, kind_rank, kind, name)
+
+
+def paper_table(datasets: Sequence[str]) -> str:
+    """The paper's table a score table of these datasets lays out: Table 5 for AntMaze only (its
+    scores are 100 x the success rate), else Table 1."""
+    envs = {(tasks.parse_task(d) or ("",))[0] for d in datasets}
+    return "Table 5; 100 x success rate" if envs == {"antmaze"} else "Table 1"
 
 
 def _natural_key(text: str) -> tuple:

@@ -17,7 +17,7 @@ import pandas as pd
 
 from eabc.agents.eabc import PUBLISHED, RECOMMENDED
 from eabc.experiments import compare
-from eabc.experiments.labels import ABLATION_PARAMETERS, display_name, labelled
+from eabc.experiments.labels import ABLATION_PARAMETERS, display_name, labelled, paper_table
 from eabc.experiments.tables import (
     AVERAGE,
     MIN_RUNS,
@@ -140,7 +140,10 @@ def _metric_sections(
     note = "" if metric is SCORE else f"{metric.title}.\n"
     write(f"{prefix}table.md", (note and note + "\n") + to_markdown(table))
     body = (note and f'<p class="note">{html.escape(note.strip())}</p>\n') + to_html(table)
-    write(f"{prefix}table.html", html_page(f"{heading} (Table 1)", body))
+    write(
+        f"{prefix}table.html",
+        html_page(f"{heading} ({paper_table(runs['dataset'].unique())})", body),
+    )
     write(f"{prefix}table.tex", (note and f"% {note}") + to_latex(table))
     stability = stability_to_markdown(stability_table(runs, metric.column), metric.name)
     write(f"{prefix}stability.md", stability)
@@ -340,7 +343,7 @@ def write_report(
         )
     heading = "Scores" if metric is SCORE else "Returns"
     sections += [
-        f"## {heading} (Table 1)\n",
+        f"## {heading} ({paper_table(runs['dataset'].unique())})\n",
         *results["table"],
         *results["comparison"],
         *results["failures"],
