@@ -432,3 +432,88 @@ def test_reports_lay_antmaze_out_as_table5():
         *(f"antmaze-{kind}" for kind in tasks.ANTMAZE_KINDS),
     ]
     assert paper_table(names[:-1]).startswith("Table 5") and paper_table(names) == "Table 1"
+
+
+# Minari's AntMaze data (Gymnasium-Robotics' AntMaze_*-v4): refused in one line.
+
+
+def _goal_dict_episodes(rng: np.random.Generator, episodes: int = 2, steps: int = 5) -> list:
+    """Episodes shaped as Minari's D4RL/antmaze datasets: Gymnasium-Robotics' goal dicts of the
+    ant's 27 numbers without x, y (``qpos[2:15]``, ``qvel[:14]``), its x, y and the goal."""
+    from minari.data_collector import EpisodeBuffer
+
+    return [
+        EpisodeBuffer(
+            observations={
+                "observation": rng.normal(size=(steps + 1, 27)),
+                "achieved_goal": rng.normal(size=(steps + 1, 2)),
+                "desired_goal": np.tile([4.2, -3.9], (steps + 1, 1)),
+            },
+            actions=rng.uniform(-1, 1, (steps, 8)).astype(np.float32),
+            rewards=np.zeros(steps),
+            terminations=np.zeros(steps, bool),
+            truncations=np.r_[np.zeros(steps - 1, bool), True],
+        )
+        for _ in range(episodes)
+    ]
+
+
+def test_minari_antmaze_data_are_refused_in_one_line_that_says_what_to_use(
+    tmp_path, monkeypatch, made
+):
+    """Minari's AntMaze data were recorded on Gymnasium-Robotics' AntMaze: Gymnasium's ant (gear
+    150, 0.05 s steps) in a frame mirrored against D4RL's. No map takes them onto the evaluation
+    environments (docs/datasets.md), so they are refused, with or without the minari package;
+    other goal-dict data are told to flatten; our own exports (flat) load as before."""
+    import sys
+
+    import minari
+    from gymnasium import spaces
+
+    from eabc.cli import main
+    from eabc.data import loaders
+    from eabc.data.sources import load_dataset
+
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path))
+    box = lambda n: spaces.Box(-np.inf, np.inf, (n,), np.float64)  # noqa: E731
+    goal_dict = spaces.Dict(
+        {"observation": box(27), "achieved_goal": box(2), "desired_goal": box(2)}
+    )
+    rng = np.random.default_rng(0)
+    for dataset_id in ("D4RL/antmaze/umaze-v1", "mine/antmaze/medium-play-v0", "mine/reach-v0"):
+        with pytest.warns(UserWarning):  # Minari asks for an author's e-mail and code link
+            minari.create_dataset_from_buffers(
+                dataset_id,
+                _goal_dict_episodes(rng),
+                observation_space=goal_dict,
+                action_space=spaces.Box(-1, 1, (8,), np.float32),
+                algorithm_name="test",
+                author="test",
+            )
+    refusal = (
+        r"^minari:{id} was recorded on Gymnasium-Robotics' AntMaze \(goal-dict observations of "
+        r"Gymnasium's ant: .*\), which eabc cannot evaluate: .*D4RL's HDF5 file \({name}-v2\.hdf5\)"
+        r" or make the data here: eabc data make {name}$"
+    )
+    with pytest.raises(DatasetError, match=refusal.format(id="mine/antmaze/medium-play-v0",
+                                                          name="antmaze-medium-play")):  # fmt: skip
+        load_dataset("minari:mine/antmaze/medium-play-v0")
+    with pytest.raises(SystemExit) as error:
+        main(["data", "info", "minari:D4RL/antmaze/umaze-v1"])
+    line = str(error.value.code)
+    assert "\n" not in line and line.startswith("error: minari:D4RL/antmaze/umaze-v1 was recorded")
+    assert line.endswith("eabc data make antmaze-umaze")
+    with pytest.raises(DatasetError, match=r"not one flat vector per step; .*flatten them"):
+        load_dataset("minari:mine/reach-v0")
+    ours = loaders.load_file(made[0])  # exported by eabc: D4RL's 29 numbers, in D4RL's frame
+    loaders.export_minari(ours, "eabc/antmaze/umaze-diverse-v0")
+    back = load_dataset("minari:eabc/antmaze/umaze-diverse-v0")
+    np.testing.assert_array_equal(back.observations, ours.observations)
+    assert (back.env_id, back.reward_offset) == ("eabc/AntMaze-UMaze-v0", -1.0)
+
+    monkeypatch.setitem(sys.modules, "minari", None)  # as if the minari extra were not installed
+    with pytest.raises(DatasetError, match=refusal.format(id="D4RL/antmaze/large-diverse-v1",
+                                                          name="antmaze-large-diverse")):  # fmt: skip
+        load_dataset("minari:D4RL/antmaze/large-diverse-v1")
+    with pytest.raises(DatasetError, match=r"^minari:eabc/antmaze/umaze-v0 needs the minari "):
+        load_dataset("minari:eabc/antmaze/umaze-v0")

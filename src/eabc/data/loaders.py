@@ -164,8 +164,18 @@ def has_minari(dataset_id: str) -> bool:
     return dataset_id in minari.list_local_datasets()
 
 
+GOAL_KEYS = frozenset({"observation", "achieved_goal", "desired_goal"})
+"""The keys of a Gymnasium-Robotics goal-conditioned observation (its AntMaze, PointMaze, ...)."""
+GYMNASIUM_ROBOTICS_ANTMAZE = "D4RL/antmaze/"
+"""Minari's namespace of the AntMaze data it re-created on Gymnasium-Robotics' ``AntMaze_*-v4``."""
+
+
 def load_minari(dataset_id: str) -> Dataset:
-    """A Minari dataset from the local Minari path (never downloads)."""
+    """A Minari dataset from the local Minari path (never downloads); its observations must be
+    flat vectors. Minari's AntMaze data (``D4RL/antmaze/*``, or any goal-dict dataset of an
+    AntMaze task) are refused: see :func:`_gymnasium_robotics_antmaze`."""
+    if dataset_id.startswith(GYMNASIUM_ROBOTICS_ANTMAZE):  # refused with or without minari
+        raise DatasetError(_gymnasium_robotics_antmaze(dataset_id, None))
     try:
         import minari  # noqa: PLC0415
     except ImportError:
@@ -179,11 +189,10 @@ def load_minari(dataset_id: str) -> Dataset:
             f"({minari.storage.get_dataset_path('')}); set MINARI_DATASETS_PATH or make it there first"
         )
     data = minari.load_dataset(dataset_id, download=False)
+    _check_flat_observations(dataset_id, data.observation_space, data.env_spec)
     parts = {k: [] for k in ("observations", "actions", "rewards", "next_observations")}
     terminals, timeouts = [], []
     for episode in data.iterate_episodes():
-        if not isinstance(episode.observations, np.ndarray):
-            raise DatasetError(f"{dataset_id}: only flat Box observations are supported")
         parts["observations"].append(episode.observations[:-1])
         parts["next_observations"].append(episode.observations[1:])
         parts["actions"].append(episode.actions)
@@ -202,6 +211,47 @@ def load_minari(dataset_id: str) -> Dataset:
         ref_max_score=_float(metadata.get("ref_max_score")),
         reward_offset=tasks.reward_offset(tasks.parse_task(dataset_id)),
         metadata={"source": "minari", "minari_id": dataset_id},
+    )
+
+
+def _check_flat_observations(dataset_id: str, space, env_spec) -> None:
+    """Refuse, in one line, observations that are not one flat vector per step."""
+    from gymnasium import spaces  # noqa: PLC0415
+
+    if isinstance(space, spaces.Box) and len(space.shape) == 1:
+        return
+    keys = set(space.spaces) if isinstance(space, spaces.Dict) else set()
+    env_id = env_spec.id if env_spec is not None else None
+    task = tasks.parse_task(dataset_id)
+    antmaze = (task is not None and task[0] == "antmaze") or (env_id or "").startswith("AntMaze")
+    if keys >= GOAL_KEYS and antmaze:
+        raise DatasetError(_gymnasium_robotics_antmaze(dataset_id, env_id))
+    raise DatasetError(
+        f"minari:{dataset_id}: its observations are {space}, not one flat vector per step; "
+        "eabc trains on flat Box observations: flatten them (gymnasium.spaces.flatten) into a "
+        ".npz or HDF5 file and train on that"
+    )
+
+
+def _gymnasium_robotics_antmaze(dataset_id: str, env_id: str | None) -> str:
+    """Why Minari's AntMaze data cannot train here: they were recorded on another robot, in
+    another frame, than the evaluation environments (docs/datasets.md, "Minari's AntMaze data").
+
+    Gymnasium-Robotics' ``AntMaze_*-v4`` runs Gymnasium's ant (motors of gear 150, 0.05 s per
+    step; ours is D4RL's: torques of +-30, 0.1 s per step) in a maze centred on the origin with y
+    decreasing with the row (D4RL's: the start cell at the origin, y growing with the row). Its
+    umaze data are ours shifted by (-4, -4) m (Minari flipped its map upside down); its medium and
+    large data are the mirror image of our mazes, which no shift of x, y undoes. Either way a
+    policy learnt from them would be scored on a different robot."""
+    task = tasks.parse_task(dataset_id)
+    name = f"antmaze-{task[1]}" if task is not None and task[0] == "antmaze" else "antmaze-umaze"
+    recorded = f"Gymnasium-Robotics' {env_id}" if env_id else "Gymnasium-Robotics' AntMaze"
+    return (
+        f"minari:{dataset_id} was recorded on {recorded} (goal-dict observations of Gymnasium's "
+        "ant: gear-150 motors, 0.05 s steps, the maze centred on the origin), which eabc cannot "
+        "evaluate: its AntMaze environments are D4RL's ant (torques of +-30, 0.1 s steps) in "
+        f"D4RL's coordinates. Use D4RL's HDF5 file ({name}-v2.hdf5) or make the data here: eabc "
+        f"data make {name}"
     )
 
 
