@@ -49,12 +49,14 @@ def data_next_actions(dataset: Dataset) -> np.ndarray:
 FAST_COMPILE_ENV = "EABC_FAST_COMPILE"
 """Set to 1 to compile the training chunks at XLA's lowest optimisation level: a program compiles
 in about half the time and runs slower, so a run of a few hundred steps starts sooner (the test
-suite's contract checks use it). Results differ from the default build in the last bits."""
+suite's contract checks use it). Its scan runs one step per iteration, not two: the unrolled body
+is twice the code for XLA to compile (UWAC's contract chunk: 7-9 -> 5-6 s of CPU). Results differ
+from the default build in the last bits."""
 FAST_COMPILE_OPTIONS = {
     "xla_backend_optimization_level": 0,
     "xla_llvm_disable_expensive_passes": True,
 }
-_STATIC = ("update", "batch_size", "length")
+_STATIC = ("update", "batch_size", "length", "unroll")
 
 
 def fast_compile() -> bool:
@@ -62,7 +64,7 @@ def fast_compile() -> bool:
     return os.environ.get(FAST_COMPILE_ENV, "").strip().lower() in ("1", "true", "yes", "on")
 
 
-def _chunk(agent_state, key, data: Batch, update, batch_size: int, length: int):
+def _chunk(agent_state, key, data: Batch, update, batch_size: int, length: int, unroll: int):
     size = data.rewards.shape[0]
 
     def step(carry, _):
@@ -75,13 +77,17 @@ def _chunk(agent_state, key, data: Batch, update, batch_size: int, length: int):
 
     # Two steps per loop iteration (TD3's actor period): +6% steps/s at K = 2 on CPU, same results.
     (agent_state, key), metrics = jax.lax.scan(
-        step, (agent_state, key), None, length=length, unroll=2
+        step, (agent_state, key), None, length=length, unroll=unroll
     )
     return agent_state, key, metrics
 
 
-def _chunk_seeds(agent_states, keys, data: Batch, update, batch_size: int, length: int):
-    chunk = functools.partial(_chunk, update=update, batch_size=batch_size, length=length)
+def _chunk_seeds(
+    agent_states, keys, data: Batch, update, batch_size: int, length: int, unroll: int
+):
+    chunk = functools.partial(
+        _chunk, update=update, batch_size=batch_size, length=length, unroll=unroll
+    )
     return jax.vmap(chunk, in_axes=(0, 0, None))(agent_states, keys, data)
 
 
@@ -102,14 +108,20 @@ def train_chunk(agent_state, key, data: Batch, update, batch_size: int, length: 
     """``length`` gradient steps in one compiled scan; batches are sampled with replacement inside.
     ``update`` is hashable (e.g. a ``functools.partial`` of an algorithm's update); one program is
     compiled per update, batch size and length."""
-    program = _PROGRAMS[fast_compile()][0]
-    return program(agent_state, key, data, update=update, batch_size=batch_size, length=length)
+    fast = fast_compile()
+    return _PROGRAMS[fast][0](
+        agent_state, key, data, update=update, batch_size=batch_size, length=length,
+        unroll=1 if fast else 2,
+    )  # fmt: skip
 
 
 def train_chunk_seeds(agent_states, keys, data: Batch, update, batch_size: int, length: int):
     """:func:`train_chunk` for a stack of seeds (leading axis of states and keys), one program."""
-    program = _PROGRAMS[fast_compile()][1]
-    return program(agent_states, keys, data, update=update, batch_size=batch_size, length=length)
+    fast = fast_compile()
+    return _PROGRAMS[fast][1](
+        agent_states, keys, data, update=update, batch_size=batch_size, length=length,
+        unroll=1 if fast else 2,
+    )  # fmt: skip
 
 
 def summarize_metrics(
