@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
 from eabc.agents.common import Batch
+from eabc.training.chunks import FAST_COMPILE_OPTIONS
 
 OBS, ACT, B = 3, 2, 7
 
@@ -29,6 +31,15 @@ def np_q(critic, k, obs, act):
     return np.stack(
         [np_mlp(member(critic, i), np.concatenate([obs, act], -1))[:, 0] for i in range(k)]
     )
+
+
+def quick_jit(update):
+    """An algorithm's ``update(state, batch, key, config, max_action)`` as one program compiled
+    at XLA O0. Run eagerly, an update compiles each of its hundreds of operations on first use and
+    its ``lax.cond`` again on every call: SAC's first eager step took 7.7 s of CPU, EABC's every
+    step 1 s; compiled this way, 1.2-2 s once per config, and the tests check the update compiled,
+    as training runs it (inside its scan)."""
+    return jax.jit(update, static_argnums=(3, 4), compiler_options=FAST_COMPILE_OPTIONS)
 
 
 def make_batch(seed: int = 0) -> Batch:
