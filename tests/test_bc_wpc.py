@@ -5,10 +5,12 @@ from __future__ import annotations
 import jax
 import numpy as np
 import pytest
-from handcalc import ACT, OBS, np_mlp, np_q
+from handcalc import ACT, OBS, np_mlp, np_q, quick_jit
 from learning import MARGIN, late_gain
 
 from eabc.agents import bc, eabc, wpc
+
+wpc_update = quick_jit(wpc.update)
 
 
 def test_bc_loss_and_step_match_hand_computation(batch):
@@ -50,11 +52,11 @@ def test_wpc_value_loss_and_advantage_mask_match_hand_computation(batch):
 def test_wpc_update_steps_value_every_step_and_actor_every_second(batch):
     config = wpc.WPCConfig(hidden_dims=(8, 8))
     state = wpc.init(jax.random.PRNGKey(0), OBS, ACT, config)
-    s1, m1 = wpc.update(state, batch, jax.random.PRNGKey(1), config, 1.0)
+    s1, m1 = wpc_update(state, batch, jax.random.PRNGKey(1), config, 1.0)
     assert not bool(m1["actor_updated"])
     assert not np.allclose(s1.value["w0"], state.value["w0"])
     np.testing.assert_array_equal(s1.actor["w0"], state.actor["w0"])
-    s2, m2 = wpc.update(s1, batch, jax.random.PRNGKey(2), config, 1.0)
+    s2, m2 = wpc_update(s1, batch, jax.random.PRNGKey(2), config, 1.0)
     assert bool(m2["actor_updated"]) and not np.allclose(s2.actor["w0"], s1.actor["w0"])
 
 

@@ -8,9 +8,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from handcalc import ACT, OBS, B, member, np_mlp, np_q
+from handcalc import ACT, OBS, B, member, np_mlp, np_q, quick_jit
 
 from eabc.agents import eabc
+
+eabc_update = quick_jit(eabc.update)
 
 
 def tiny(**kw):
@@ -175,12 +177,12 @@ def test_td3_preset_has_no_bc_term(batch):
 def test_actor_and_targets_move_every_policy_freq_steps(batch):
     config = tiny(num_critics=3, confidence_level=0.5)
     state = eabc.init(jax.random.PRNGKey(0), OBS, ACT, config)
-    s1, m1 = eabc.update(state, batch, jax.random.PRNGKey(1), config, 1.0)
+    s1, m1 = eabc_update(state, batch, jax.random.PRNGKey(1), config, 1.0)
     assert not bool(m1["actor_updated"])
     assert all(np.array_equal(s1.actor[k], state.actor[k]) for k in state.actor)
     assert all(np.array_equal(s1.critic_target[k], state.critic_target[k]) for k in state.critic)
     assert not np.array_equal(s1.critic["w1"], state.critic["w1"])
-    s2, m2 = eabc.update(s1, batch, jax.random.PRNGKey(2), config, 1.0)
+    s2, m2 = eabc_update(s1, batch, jax.random.PRNGKey(2), config, 1.0)
     assert bool(m2["actor_updated"]) and int(s2.step) == 2
     assert not np.array_equal(s2.actor["w0"], s1.actor["w0"])
     expected = 0.005 * np.asarray(s2.critic["w1"]) + 0.995 * np.asarray(s1.critic_target["w1"])

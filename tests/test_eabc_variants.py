@@ -9,12 +9,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from handcalc import ACT, OBS, B, member, np_mlp
+from handcalc import ACT, OBS, B, member, np_mlp, quick_jit
 from learning import MARGIN, late_gain
 
 from eabc import networks
 from eabc.agents import bc_weights, eabc
 from eabc.training import trainer
+
+eabc_update = quick_jit(eabc.update)
 
 
 def tiny(**kw):
@@ -135,7 +137,7 @@ def test_quantile_rule_masks_the_actor_step_with_the_pre_update_critics(batch):
     config = tiny(bc_weight="quantile", quantile_level=0.45, num_critics=5)
     state = eabc.init(jax.random.PRNGKey(3), OBS, ACT, config)
     state = state.replace(step=jnp.ones((), jnp.int32))  # the next step updates the actor
-    _, metrics = eabc.update(state, batch, jax.random.PRNGKey(0), config, 1.0)
+    _, metrics = eabc_update(state, batch, jax.random.PRNGKey(0), config, 1.0)
     keep = bc_weights.quantile_keep(state.critic, batch, config)
     np.testing.assert_allclose(metrics["bc_fraction"], keep.mean())
 
@@ -194,7 +196,7 @@ def test_advantage_rule_needs_no_confidence_level(batch):
     config = tiny(bc_weight="advantage")
     state = eabc.init(jax.random.PRNGKey(0), OBS, ACT, config)
     state = state.replace(step=jnp.ones((), jnp.int32))  # the next step updates the actor
-    _, metrics = eabc.update(state, batch, jax.random.PRNGKey(0), config, 1.0)
+    _, metrics = eabc_update(state, batch, jax.random.PRNGKey(0), config, 1.0)
     assert 0.0 <= float(metrics["bc_fraction"]) <= 1.0
 
 
@@ -262,7 +264,7 @@ def test_calibrated_auto_p_in_a_training_step_starts_and_stays_at_one_while_cali
     state = eabc.init(jax.random.PRNGKey(0), 3, 2, config)
     assert set(state.controller) >= {"ratio_sum", "ratio_count"}
     for i in range(6):
-        state, metrics = eabc.update(state, batch, jax.random.PRNGKey(i), config, 1.0)
+        state, metrics = eabc_update(state, batch, jax.random.PRNGKey(i), config, 1.0)
         if i < 4:
             assert float(state.controller["p"]) == 1.0
     assert float(state.controller["ratio_count"]) == 2.0  # actor steps 2 and 4
@@ -319,7 +321,7 @@ def test_distance_auto_p_in_a_training_step_measures_the_policy_against_the_data
     state = state.replace(step=jnp.ones((), jnp.int32))  # the next step updates the actor
     pi = np.tanh(np_mlp(state.actor, np.asarray(batch.observations, np.float64)))
     expected = ((pi - np.asarray(batch.actions, np.float64)) ** 2).mean()
-    _, metrics = eabc.update(state, batch, jax.random.PRNGKey(0), config, 1.0)
+    _, metrics = eabc_update(state, batch, jax.random.PRNGKey(0), config, 1.0)
     np.testing.assert_allclose(metrics["action_distance"], expected, rtol=1e-4)
     with pytest.raises(ValueError, match="auto_calibration_steps"):
         tiny(bc_weight="auto", auto_signal="distance")
@@ -375,9 +377,9 @@ def test_auto_p_moves_only_on_actor_steps_and_drives_the_mask(batch):
     config = tiny(bc_weight="auto", auto_initial_p=0.5, auto_rate=0.05)
     state = eabc.init(jax.random.PRNGKey(0), OBS, ACT, config)
     np.testing.assert_allclose(state.controller["p"], 0.5)
-    s1, _ = eabc.update(state, batch, jax.random.PRNGKey(1), config, 1.0)  # critic only
+    s1, _ = eabc_update(state, batch, jax.random.PRNGKey(1), config, 1.0)  # critic only
     np.testing.assert_array_equal(s1.controller["p"], state.controller["p"])
-    s2, m2 = eabc.update(s1, batch, jax.random.PRNGKey(2), config, 1.0)  # actor step
+    s2, m2 = eabc_update(s1, batch, jax.random.PRNGKey(2), config, 1.0)  # actor step
     assert float(s2.controller["p"]) != 0.5
     np.testing.assert_allclose(m2["auto_p"], s2.controller["p"])
     # The actor step's Bernoulli mask used p = 0.5 (the controller's value before the step).

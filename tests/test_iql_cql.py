@@ -9,13 +9,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from handcalc import ACT, OBS, B, np_mlp, np_q
+from handcalc import ACT, OBS, B, np_mlp, np_q, quick_jit
 from learning import MARGIN, late_gain
 
 from eabc import networks
 from eabc.agents import cql, get_algorithm, iql, sac
 from eabc.data.dataset import Dataset
 from eabc.training import trainer
+
+iql_update = quick_jit(iql.update)
+cql_update = quick_jit(cql.update)
 
 
 def as64(*arrays):
@@ -87,7 +90,7 @@ def test_iql_update_uses_the_new_v_for_actor_and_critics(batch):
     config = iql.IQLConfig(hidden_dims=(8, 8))
     state = iql_state(config, batch)
     state = state.replace(log_std=jnp.asarray([0.2, -0.3], jnp.float32))
-    new, metrics = iql.update(state, batch, jax.random.PRNGKey(0), config, 1.0)
+    new, metrics = iql_update(state, batch, jax.random.PRNGKey(0), config, 1.0)
     assert not np.allclose(new.value["w0"], state.value["w0"])
     critic, _ = iql.critic_loss(state.critic, new.value, batch, config)
     np.testing.assert_allclose(metrics["critic_loss"], critic, rtol=1e-6)
@@ -115,7 +118,7 @@ def test_iql_actor_learning_rate_decays_on_a_cosine_to_zero(batch):
     config = iql.IQLConfig(hidden_dims=(8, 8), total_steps=2)
     states = [iql_state(config, batch)]
     for seed in range(3):
-        states.append(iql.update(states[-1], batch, jax.random.PRNGKey(seed), config, 1.0)[0])
+        states.append(iql_update(states[-1], batch, jax.random.PRNGKey(seed), config, 1.0)[0])
     # Adam's first step moves every parameter with a gradient by the learning rate itself.
     step = np.abs(np.asarray(states[1].log_std) - np.asarray(states[0].log_std))
     np.testing.assert_allclose(step, 3e-4, rtol=1e-3)
@@ -287,7 +290,7 @@ def test_cql_update_steps_every_loss_from_the_current_state(batch, lagrange):
     config = cql.CQLConfig(hidden_dims=(8, 8), num_sampled_actions=4, lagrange=lagrange)
     state = cql_state(config)
     key = jax.random.PRNGKey(11)
-    new, metrics = cql.update(state, batch, key, config, 1.0)
+    new, metrics = cql_update(state, batch, key, config, 1.0)
     critic_key, actor_key = jax.random.split(key)
 
     # The actor maximises the critics of before the step (as in JaxCQL).

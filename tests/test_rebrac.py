@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from handcalc import ACT, OBS, B, np_mlp
+from handcalc import ACT, OBS, B, np_mlp, quick_jit
 from learning import MARGIN, late_gain
 
 from eabc.agents import get_algorithm, rebrac
@@ -22,6 +22,7 @@ from eabc.training.chunks import data_next_actions, device_data
 
 K = 3  # more critics than ReBRAC's 2, so that the tests see the minimum over all of them
 MAX_ACTION = 2.0
+rebrac_update = quick_jit(rebrac.update)
 
 
 def tiny(**kw):
@@ -170,7 +171,7 @@ def test_actor_steps_on_the_new_critics_every_policy_freq_steps(batch):
     config = tiny()
     state = perturbed_state(config)
     data = with_next_actions(batch)
-    s1, m1 = rebrac.update(state, data, jax.random.PRNGKey(1), config, MAX_ACTION)
+    s1, m1 = rebrac_update(state, data, jax.random.PRNGKey(1), config, MAX_ACTION)
     critic, _ = rebrac.critic_loss(
         state.critic, state.critic_target, state.actor_target, data, jax.random.PRNGKey(1),
         config, MAX_ACTION,
@@ -180,7 +181,7 @@ def test_actor_steps_on_the_new_critics_every_policy_freq_steps(batch):
     assert all(np.array_equal(s1.actor[k], state.actor[k]) for k in state.actor)
     assert all(np.array_equal(s1.critic_target[k], state.critic_target[k]) for k in state.critic)
 
-    s2, m2 = rebrac.update(s1, data, jax.random.PRNGKey(2), config, MAX_ACTION)
+    s2, m2 = rebrac_update(s1, data, jax.random.PRNGKey(2), config, MAX_ACTION)
     assert bool(m2["actor_updated"]) and int(s2.step) == 2
     actor, _ = rebrac.actor_loss(s1.actor, s2.critic, data, config, MAX_ACTION)
     np.testing.assert_allclose(m2["actor_loss"], actor, rtol=1e-6)
