@@ -12,7 +12,9 @@ networks, 300 steps, one evaluation episode.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import io
 import json
 import re
 import shutil
@@ -283,3 +285,119 @@ def test_a_home_that_does_not_exist_is_refused_in_one_line(argv, tmp_path, monke
     with pytest.raises(SystemExit, match=r"error: ~nouser/\S+: cannot expand ~nouser .*full path"):
         main(argv)
     assert not list(tmp_path.iterdir()), "nothing made"
+
+
+def _released(fifo, action):
+    """``action()``'s outcome (its value or the exception it raised), run in a thread; if it
+    blocks on opening ``fifo`` (the readers did) it is released and the test fails. A signal
+    cannot stop it: it may reach one of JAX's threads instead of the one blocked."""
+    import os  # noqa: PLC0415
+    import threading  # noqa: PLC0415
+
+    outcome = {}
+
+    def run():
+        try:
+            outcome["value"] = action()
+        except BaseException as error:  # noqa: BLE001 (SystemExit too: compared below)
+            outcome["value"] = error
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    thread.join(30)
+    blocked = thread.is_alive()
+    while thread.is_alive():  # a writer that closes at once lets a blocked open() return
+        with contextlib.suppress(OSError):
+            os.close(os.open(fifo, os.O_WRONLY | os.O_NONBLOCK))
+        thread.join(0.5)
+    assert not blocked, f"blocked on {fifo}"
+    return outcome["value"]
+
+
+@pytest.mark.parametrize(
+    "name", ["checkpoint.msgpack", "config.json", "log.csv", "summary.json", "provenance.json"]
+)
+def test_a_run_file_that_is_a_fifo_is_refused_not_waited_on(finished, tmp_path, name):
+    """Before: every reader blocked forever on a FIFO (and read /dev/zero until memory ran out)."""
+    import os  # noqa: PLC0415
+
+    run_dir = copy(finished, tmp_path)
+    (run_dir / name).unlink()
+    os.mkfifo(run_dir / name)
+    row, _ = _released(run_dir / name, lambda: results.read_run(run_dir))
+    if name in ("checkpoint.msgpack", "config.json", "log.csv", "summary.json"):
+        assert row["status"] in results.UNUSABLE and f"run/{name}" in row["config"], row
+    for argv in (["evaluate", str(run_dir)], ["train", "--resume", str(run_dir), "--no-progress"]):
+        with contextlib.redirect_stdout(io.StringIO()):
+            ended = _released(run_dir / name, lambda argv=argv: main(argv))
+        if isinstance(ended, BaseException):
+            assert isinstance(ended, SystemExit), ended
+            assert f"run/{name}" in str(ended.code) and "\n" not in str(ended.code)
+
+
+def test_results_lists_a_run_whose_config_json_was_deleted(finished, tmp_path):
+    """Before: the run vanished from `eabc results` (only config.json marked a run)."""
+    run_dir = copy(finished, tmp_path)
+    (run_dir / checkpoint.CONFIG).unlink()
+    runs, _ = results.collect(tmp_path, write=False)
+    assert list(runs["status"]) == ["broken"] and "run/config.json is missing" in runs["config"][0]
+
+
+def _log_lines(run_dir):
+    return (run_dir / "log.csv").read_text().splitlines(keepends=True)
+
+
+@pytest.mark.parametrize(
+    ("damage", "why"),
+    [
+        (lambda lines: [*lines, lines[-1]], "has step 300 more than once"),
+        (lambda lines: [*lines, lines[-1].replace("300,", "400,", 1)], "goes on to step 400"),
+    ],
+)
+def test_a_log_with_a_repeated_row_or_one_past_the_end_is_damaged_and_rebuilt(
+    finished, tmp_path, pendulum_dataset, damage, why
+):
+    """Before: results counted the repeated evaluation (or listed the run as done), and resume
+    left the log as it was."""
+    run_dir = copy(finished, tmp_path)
+    (run_dir / "log.csv").write_text("".join(damage(_log_lines(run_dir))))
+    row, _ = results.read_run(run_dir)
+    assert row["status"] == "damaged" and why in row["config"]
+    trainer.train(trainer.resume(run_dir, pendulum_dataset), progress=False)
+    assert results.read_run(run_dir)[0]["status"] == "done"
+
+
+@pytest.mark.parametrize("text", ["{}", "[300]", '{"steps": "300"}'])
+def test_a_summary_that_is_not_one_is_damaged(finished, tmp_path, text):
+    """Before: ``{}`` or a list read as no summary at all (the run listed as partial)."""
+    run_dir = copy(finished, tmp_path)
+    (run_dir / "summary.json").write_text(text)
+    row, _ = results.read_run(run_dir)
+    assert (
+        row["status"] == "damaged"
+        and "summary.json cannot be read as a run's summary" in (row["config"])
+    )
+
+
+def test_a_log_whose_scores_are_not_the_checkpoints_is_damaged(finished, tmp_path):
+    """The returns the checkpoint holds but other scores (another run's log on data with other
+    reference scores): before, the run was listed as done with scores it never had."""
+    run_dir = copy(finished, tmp_path)
+    lines = _log_lines(run_dir)
+    header = lines[0].rstrip("\r\n").split(",")
+    cells = lines[2].rstrip("\r\n").split(",")  # step 200, an evaluation
+    cells[header.index("score")] = "99.0"
+    (run_dir / "log.csv").write_text("".join([*lines[:2], ",".join(cells) + "\n", *lines[3:]]))
+    row, _ = results.read_run(run_dir)
+    assert row["status"] == "damaged" and "evaluation at step 200" in row["config"]
+
+
+def test_another_runs_summary_is_damage_even_where_its_numbers_agree(finished, tmp_path):
+    """Another seed's (or algorithm's, or dataset's) summary.json with the same numbers: before,
+    listed as done."""
+    run_dir = copy(finished, tmp_path)
+    summary = json.loads((run_dir / "summary.json").read_text())
+    for key, value in [("seed", 1), ("algo", "bc"), ("dataset", "other")]:
+        (run_dir / "summary.json").write_text(json.dumps({**summary, key: value}))
+        row, _ = results.read_run(run_dir)
+        assert row["status"] == "damaged" and f"summary.json is of {key}" in row["config"]

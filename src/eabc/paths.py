@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import errno
 import os
+import stat
 from pathlib import Path
 
 
@@ -23,3 +25,26 @@ def expand(path: str | os.PathLike) -> Path:
         raise ValueError(
             f"{path}: cannot expand {head} (no such user or home directory); give the full path"
         ) from None
+
+
+def read_file(path: str | os.PathLike) -> bytes:
+    """The bytes of ``path`` if it is a regular file; ``OSError`` naming it otherwise. A FIFO
+    would block its reader forever and a device (a link to /dev/zero) never end: the file is
+    opened without blocking and checked before a byte is read."""
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            kind = (
+                "a directory" if stat.S_ISDIR(mode)
+                else "a FIFO" if stat.S_ISFIFO(mode)
+                else "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode)
+                else "a socket" if stat.S_ISSOCK(mode)
+                else "not a file"
+            )  # fmt: skip
+            raise OSError(errno.EINVAL, f"it is {kind}, not a regular file", str(path))
+        with os.fdopen(os.dup(fd), "rb") as f:
+            return f.read()
+    finally:
+        os.close(fd)
+

@@ -29,6 +29,7 @@ file is a cache that :func:`collect` rewrites whenever asked, so deleting it los
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
 import os
@@ -38,7 +39,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from eabc import pytree
+from eabc import paths, pytree
 from eabc.agents import ALGORITHMS
 from eabc.data import tasks
 from eabc.training import identity, provenance, run_config
@@ -64,8 +65,12 @@ def run_dirs(root: Path) -> list[Path]:
     if (root / CONFIG).exists():
         return [root]
     # Every config.json but an online SAC run's (``eabc sac``: "sac", no "train") is a training
-    # run's; one that cannot be read or fails its schema is listed as broken rather than dropped.
-    return sorted(p.parent for p in root.rglob(CONFIG) if not _online(p))
+    # run's; one that cannot be read or fails its schema is listed as broken rather than dropped,
+    # and so is a directory whose checkpoint, log or summary is left but whose config.json is gone.
+    found = {p.parent for p in root.rglob(CONFIG) if not _online(p)}
+    for name in (CHECKPOINT, LOG, SUMMARY):
+        found |= {p.parent for p in root.rglob(name) if not (p.parent / CONFIG).exists()}
+    return sorted(found)
 
 
 def _online(path: Path) -> bool:
@@ -75,12 +80,13 @@ def _online(path: Path) -> bool:
 
 
 def _read_json(path: Path, unreadable: dict | None = None) -> dict:
-    """The JSON object in ``path``; ``unreadable`` (default {}) if it is missing or corrupt."""
+    """The JSON object in ``path``; {} if it is missing, ``unreadable`` (default {}) if it is not
+    a regular file, not JSON or not an object."""
     try:
-        data = json.loads(path.read_text())
+        data = json.loads(paths.read_file(path).decode())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError):
         return {} if unreadable is None or not path.exists() else unreadable
-    return data if isinstance(data, dict) else {}
+    return data if isinstance(data, dict) else {} if unreadable is None else unreadable
 
 
 def _broken_row(run_dir: Path, run_id: str, why: str) -> dict:
@@ -93,6 +99,9 @@ def read_run(run_dir: Path, root: Path | None = None) -> tuple[dict, list[dict]]
     ``config``) when its config.json or log.csv cannot be read or config.json fails its schema, ``damaged`` (and why) when its
     files contradict each other (:func:`_damage`)."""
     run_id = run_dir.name if root is None else str(run_dir.relative_to(root))
+    if not (run_dir / CONFIG).exists():
+        why = f"{run_dir / CONFIG} is missing (the run's other files are here); restore it"
+        return _broken_row(run_dir, run_id, why), []
     try:
         config = run_config.read(run_dir)  # its schema, or why not in one line
     except (OSError, ValueError) as error:
@@ -117,28 +126,30 @@ def _read_run(run_dir: Path, run_id: str, config: dict) -> tuple[dict, list[dict
     rates = []  # each training chunk's steps/s (no evaluation, no checkpoint)
     log = run_dir / LOG
     if log.exists():
-        with open(log, newline="") as f:
-            for row in csv.DictReader(f):
-                q_max = _max(q_max, _num(row.get("q_mean")))
-                rates.append(_num(row.get("steps_per_s")))
-                if _num(row.get("q_out_of_range")) == 1.0 and math.isnan(out_of_range):
-                    out_of_range = int(float(row["step"]))
-                    onset = last_row or row  # out of range from the first row: that row
-                last_row = row
-                # An evaluation row has a return; "nan" cells (which resumes of older versions
-                # wrote into empty cells) are no evaluation.
-                if not math.isnan(_num(row.get("return_mean"))):
-                    evaluations.append(
-                        {
-                            "step": int(float(row["step"])),
-                            "score": _num(row.get("score")),
-                            "score_std": _num(row.get("score_std")),
-                            "return_mean": _num(row.get("return_mean")),
-                            "return_std": _num(row.get("return_std")),
-                        }
-                    )
+        text = paths.read_file(log).decode()  # a FIFO would block: refused, as OSError
+        for row in csv.DictReader(io.StringIO(text, newline="")):
+            q_max = _max(q_max, _num(row.get("q_mean")))
+            rates.append(_num(row.get("steps_per_s")))
+            if _num(row.get("q_out_of_range")) == 1.0 and math.isnan(out_of_range):
+                out_of_range = int(float(row["step"]))
+                onset = last_row or row  # out of range from the first row: that row
+            last_row = row
+            # An evaluation row has a return; "nan" cells (which resumes of older versions
+            # wrote into empty cells) are no evaluation.
+            if not math.isnan(_num(row.get("return_mean"))):
+                evaluations.append(
+                    {
+                        "step": int(float(row["step"])),
+                        "score": _num(row.get("score")),
+                        "score_std": _num(row.get("score_std")),
+                        "return_mean": _num(row.get("return_mean")),
+                        "return_std": _num(row.get("return_std")),
+                    }
+                )
     steps = int(float(last_row["step"])) if last_row else 0
-    problem = problem or _damage(run_dir, summary, evaluations, steps, stored)
+    run = {"algo": train["algo"], "seed": train["seed"], "dataset": dataset}
+    problem = problem or _damage(run_dir, summary, evaluations, steps, stored, int(train["steps"]))
+    problem = problem or _foreign_summary(run_dir, summary, run)
     wall = _num(last_row.get("wall_time")) if last_row else math.nan
     last = evaluations[-FINAL_EVALUATIONS:]
     spec = _read_json(run_dir / "sweep.json")  # written by eabc.experiments.sweep
@@ -185,22 +196,30 @@ def _checkpoint_history(run_dir: Path, config: dict) -> tuple[tuple | None, str 
     return (step, raw.get("evaluations") or {}), None
 
 
-def _damage(run_dir: Path, summary: dict, evaluations: list[dict], logged: int, stored) -> str:
+def _damage(
+    run_dir: Path, summary: dict, evaluations: list[dict], logged: int, stored, target: int
+) -> str:
     """Why the run's files contradict each other, or "" when they agree: log.csv against the
-    checkpoint's evaluation history (:func:`~eabc.training.logger.log_problem`) and against
-    summary.json (its steps, its number of evaluations and its final return)."""
+    checkpoint's evaluation history (:func:`~eabc.training.logger.log_problem`), against the
+    run's ``target`` steps and against summary.json (its steps, its number of evaluations and its
+    final return)."""
     problem = ""
     if stored is not None:
         step, history = stored
-        problem = log_problem(run_dir / LOG, history, step) or ""
-    if problem or not summary:
+        problem = log_problem(run_dir / LOG, history, step, target) or ""
+    if not problem and logged > target:
+        problem = f"{run_dir / LOG} goes on to step {logged}, past the run's {target} steps"
+    steps = summary.get("steps")
+    if problem or not (run_dir / SUMMARY).exists():
         pass  # a checkpoint's history is the stronger evidence; no summary, nothing to compare
-    elif summary.get("unreadable"):
-        problem = f"{run_dir / SUMMARY} cannot be read"
+    elif summary.get("unreadable") or not isinstance(steps, int) or isinstance(steps, bool):
+        problem = (
+            f"{run_dir / SUMMARY} cannot be read as a run's summary (a JSON object with steps)"
+        )
     elif not (run_dir / LOG).exists():
         problem = f"{run_dir / LOG} is missing but {SUMMARY} says the run trained"
     else:
-        done = int(summary.get("steps", 0))
+        done = steps
         scored = [e for e in evaluations if e["step"] <= done]
         final = _mean([e["return_mean"] for e in scored[-FINAL_EVALUATIONS:]])
         recorded = summary.get("final_return")
@@ -216,6 +235,17 @@ def _damage(run_dir: Path, summary: dict, evaluations: list[dict], logged: int, 
     if problem and stored is not None:
         problem += f"; `eabc train --resume {run_dir}` rebuilds it from the checkpoint"
     return problem
+
+
+def _foreign_summary(run_dir: Path, summary: dict, run: dict) -> str:
+    """Why summary.json is another run's (its algorithm, seed or dataset), or ""."""
+    for key, value in run.items():
+        if key in summary and summary[key] != value:
+            return (
+                f"{run_dir / SUMMARY} is of {key} {summary[key]!r} but {run_dir / CONFIG}'s run "
+                f"has {value!r}: another run's summary"
+            )
+    return ""
 
 
 def _status(summary: dict, train: dict) -> str:
@@ -252,14 +282,21 @@ def collect(root: str | Path, write: bool = True) -> tuple[pd.DataFrame, pd.Data
     root = Path(root)
     rows, evaluations = [], []
     for run_dir in run_dirs(root):
-        if not (run_dir / CONFIG).exists():
-            continue
         row, evals = read_run(run_dir, root if run_dir != root else None)
         rows.append(row)
         evaluations.extend(evals)
     runs = pd.DataFrame(rows, columns=_RUN_COLUMNS)
     evals = pd.DataFrame(evaluations, columns=_EVAL_COLUMNS)
-    if write and root.is_dir():
+    if write:
+        store(root, runs, evals)
+    return runs, evals
+
+
+def store(root: str | Path, runs: pd.DataFrame, evals: pd.DataFrame) -> None:
+    """Write ``root/results.sqlite`` (atomically) from :func:`collect`'s tables; a command that
+    refuses its other inputs calls this only after checking them, so that it changes nothing."""
+    root = Path(root)
+    if root.is_dir():
         fd, tmp = tempfile.mkstemp(dir=root, prefix=f".{DATABASE}.", suffix=".tmp")
         os.fchmod(fd, file_mode())  # as open() would, not mkstemp's 0600
         os.close(fd)
@@ -271,7 +308,6 @@ def collect(root: str | Path, write: bool = True) -> tuple[pd.DataFrame, pd.Data
             os.replace(tmp, root / DATABASE)
         finally:
             Path(tmp).unlink(missing_ok=True)
-    return runs, evals
 
 
 _RUN_COLUMNS = [

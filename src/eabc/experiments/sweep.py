@@ -51,7 +51,7 @@ def _status(run: RunSpec, root: Path) -> tuple[str, int, str]:
     target = run.train_config().steps
     if (run_dir / SPEC).exists():
         try:
-            stored = RunSpec.from_json(json.loads((run_dir / SPEC).read_text()))
+            stored = RunSpec.from_json(json.loads(paths.read_file(run_dir / SPEC).decode()))
         except (OSError, ValueError, KeyError, TypeError) as error:
             return "broken", 0, f"{run_dir / SPEC} cannot be read ({type(error).__name__})"
         changed = differences(stored, run)
@@ -79,7 +79,7 @@ def _status(run: RunSpec, root: Path) -> tuple[str, int, str]:
 
 def _read_json(path: Path) -> dict:
     try:
-        data = json.loads(path.read_text())
+        data = json.loads(paths.read_file(path).decode())
     except (OSError, ValueError):
         return {}
     return data if isinstance(data, dict) else {}
@@ -124,7 +124,7 @@ def measured_speeds(runs: list[RunSpec], root: Path) -> dict[str, float]:
         if not (run_dir / "log.csv").exists():
             continue
         try:
-            run = RunSpec.from_json(json.loads(spec_file.read_text()))
+            run = RunSpec.from_json(json.loads(paths.read_file(spec_file).decode()))
         except (OSError, ValueError, KeyError, TypeError):
             continue  # a broken run is reported elsewhere
         speed = results.read_run(run_dir)[0].get("steps_per_s")

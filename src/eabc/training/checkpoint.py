@@ -24,7 +24,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from eabc import pytree
+from eabc import paths, pytree
 
 CHECKPOINT = "checkpoint.msgpack"
 CONFIG = "config.json"
@@ -127,7 +127,7 @@ def read_tree(path: Path) -> dict[str, Any]:
 def _read(path: Path) -> tuple[dict[str, Any], bool]:
     """The file's nested dicts and whether it carried a checksum (verified)."""
     try:
-        data = path.read_bytes()
+        data = paths.read_file(path)
     except OSError as error:
         raise CheckpointError(f"{path} cannot be read ({error.strerror}); {_REDO}") from None
     checked = len(data) >= 40 and data[-40:-32] == TRAILER
@@ -251,7 +251,7 @@ def read_config(run_dir: Path) -> dict:
     if not path.exists():
         raise FileNotFoundError(f"{run_dir} is not a run directory (no {CONFIG})")
     try:
-        config = json.loads(path.read_text())
+        config = json.loads(paths.read_file(path).decode())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
         raise CheckpointError(
             f"{path} cannot be read ({type(error).__name__}: {error}); restore it from a copy "

@@ -16,6 +16,8 @@ from pathlib import Path
 
 import filelock
 
+from eabc import paths
+
 LOCK = ".lock"
 OWNER = ".lock.owner"
 
@@ -71,7 +73,7 @@ def in_use(run_dir: str | Path) -> bool:
     a killed process on this host does not count; one from another host (a shared filesystem)
     does, as its process cannot be checked from here."""
     try:
-        owner = json.loads((Path(run_dir) / OWNER).read_text())
+        owner = json.loads(paths.read_file(Path(run_dir) / OWNER).decode())
         pid, host = int(owner["pid"]), owner["host"]
     except (OSError, ValueError, KeyError, TypeError):
         return False
@@ -89,7 +91,7 @@ def in_use(run_dir: str | Path) -> bool:
 def holder(run_dir: Path) -> str:
     """Who holds ``run_dir``'s lock, in words."""
     try:
-        owner = json.loads((Path(run_dir) / OWNER).read_text())
+        owner = json.loads(paths.read_file(Path(run_dir) / OWNER).decode())
         return (
             f"process {owner['pid']} on {owner['host']} (since {owner['since']}: "
             f"{owner['command']})"

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import collections
 import csv
 import io
 import math
 from pathlib import Path
 
+from eabc import paths
 from eabc.training.checkpoint import atomic_write
 
 LOG = "log.csv"
@@ -95,7 +97,7 @@ def read_config_or_none(run_dir: Path) -> dict | None:
     import json  # noqa: PLC0415
 
     try:
-        return json.loads((run_dir / "config.json").read_text())
+        return json.loads(paths.read_file(run_dir / "config.json").decode())
     except (OSError, ValueError):
         return None
 
@@ -105,17 +107,22 @@ def _hparam(value):
     return value if isinstance(value, bool | int | float | str) else str(value)
 
 
-def read_log(path: Path) -> list[dict[str, str]]:
-    """The rows of a ``log.csv`` as text, without their empty cells."""
-    with open(path, newline="") as f:
-        return [{k: v for k, v in row.items() if v not in ("", None)} for row in csv.DictReader(f)]
+def read_log(path: Path, data: bytes | None = None) -> list[dict[str, str]]:
+    """The rows of a ``log.csv`` (or of its bytes ``data``) as text, without their empty cells;
+    ``OSError`` where it is not a regular file (a FIFO would block the reader)."""
+    data = paths.read_file(path) if data is None else data
+    rows = csv.DictReader(io.StringIO(data.decode(), newline=""))
+    return [{k: v for k, v in row.items() if v not in ("", None)} for row in rows]
 
 
-def log_problem(path: Path, evaluations: dict[str, dict], step: int) -> str | None:
+def log_problem(
+    path: Path, evaluations: dict[str, dict], step: int, steps: int | None = None
+) -> str | None:
     """Why the ``log.csv`` at ``path`` does not hold what a checkpoint at ``step`` with the
-    evaluation history ``evaluations`` says was logged (missing, unreadable, cut short, lacking or
-    contradicting an evaluation); None when it holds it. Rows after ``step`` are not judged (a
-    run logs a few rows past its last checkpoint)."""
+    evaluation history ``evaluations`` says was logged (missing, unreadable, cut short, a step
+    twice, past the run's ``steps``, lacking or contradicting an evaluation); None when it holds
+    it. Other rows after ``step`` are not judged (a run logs a few rows past its last checkpoint,
+    and a resume drops them)."""
     if not path.exists():
         return f"{path} is missing" if step > 0 or evaluations else None
     rows, complete = readable_rows(path)
@@ -123,21 +130,34 @@ def log_problem(path: Path, evaluations: dict[str, dict], step: int) -> str | No
         return f"{path} cannot be read"
     if not complete:
         return f"{path} is cut short (its last line is incomplete)"
-    last = max((int(float(row["step"])) for row in rows), default=0)
+    logged_steps = [int(float(row["step"])) for row in rows]
+    last = max(logged_steps, default=0)
+    twice = sorted(at for at, times in collections.Counter(logged_steps).items() if times > 1)
+    if twice:
+        return f"{path} has step {twice[0]} more than once"
+    if steps is not None and last > steps:
+        return f"{path} goes on to step {last}, past the run's {steps} steps"
     if last < step:
         return f"{path} ends at step {last}, before the checkpoint's step {step}"
-    logged = {
-        int(float(row["step"])): _num(row.get("return_mean"))
+    logged = {  # an evaluation's return and score (NaN for data without reference scores)
+        int(float(row["step"])): (_num(row.get("return_mean")), _num(row.get("score")))
         for row in rows
         if int(float(row["step"])) <= step and not math.isnan(_num(row.get("return_mean")))
     }
-    held = {int(s): float(e["return_mean"]) for s, e in evaluations.items()}
+    held = {int(s): (float(e["return_mean"]), _num(e.get("score"))) for s, e in evaluations.items()}
     for at in sorted(set(held) | set(logged)):
         if at not in logged:
             return f"{path} lacks the evaluation at step {at} that the checkpoint holds"
-        if at not in held or not math.isclose(logged[at], held[at], rel_tol=1e-9, abs_tol=1e-9):
+        if at not in held or not all(map(_same, logged[at], held[at])):
             return f"{path} has an evaluation at step {at} that the checkpoint does not hold"
     return None
+
+
+def _same(a: float, b: float) -> bool:
+    """Two logged numbers agree (NaN, no value, agrees only with NaN)."""
+    if math.isnan(a) or math.isnan(b):
+        return math.isnan(a) and math.isnan(b)
+    return math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-9)
 
 
 def rebuild_log(path: Path, evaluations: dict[str, dict], step: int) -> None:
@@ -166,8 +186,8 @@ def readable_rows(path: Path) -> tuple[list[dict[str, str]] | None, bool]:
     """``log.csv``'s rows (None if it cannot be read as a log) and whether its last line is
     whole (a file cut mid-line ends without a line break)."""
     try:
-        data = path.read_bytes()
-        rows = read_log(path)
+        data = paths.read_file(path)
+        rows = read_log(path, data)
         for row in rows:
             int(float(row["step"]))
     except (OSError, UnicodeDecodeError, csv.Error, KeyError, ValueError, TypeError):

@@ -22,6 +22,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
+from eabc import paths
 from eabc.training import checkpoint
 
 PROVENANCE = "provenance.json"
@@ -125,7 +126,7 @@ def segment(step: int) -> dict[str, Any]:
 def read(run_dir: Path) -> list[dict[str, Any]]:
     """A run's segments, oldest first; [] for a run from before this record (or an unreadable one)."""
     try:
-        data = json.loads((Path(run_dir) / PROVENANCE).read_text())
+        data = json.loads(paths.read_file(Path(run_dir) / PROVENANCE).decode())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError):
         return []
     segments = data.get("segments") if isinstance(data, dict) else None

@@ -334,7 +334,7 @@ def lost_progress(run_dir: Path, steps: int, checkpoint_interval: int) -> str | 
     summary_path = run_dir / SUMMARY
     if summary_path.exists():
         try:
-            summary = json.loads(summary_path.read_text())
+            summary = json.loads(paths.read_file(summary_path).decode())
             done = f"{int(summary['steps'])} of {steps} steps"
             if summary.get("diverged_step") is not None:
                 done += f", stopped on NaN/inf at step {summary['diverged_step']}"
@@ -413,7 +413,9 @@ def _resume(run_dir: Path, dataset: Dataset | None, write: bool, restart: bool =
     run = _build(run_dir, config, agent_config, dataset, state="checkpoint", saved=saved)
     if write:
         run.identity = _identity(run_dir, saved)
-        problem = logger.log_problem(run_dir / LOG, run.state["evaluations"], run.step)
+        problem = logger.log_problem(
+            run_dir / LOG, run.state["evaluations"], run.step, config.steps
+        )
         if problem:
             logger.rebuild_log(run_dir / LOG, run.state["evaluations"], run.step)
             print(
