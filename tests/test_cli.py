@@ -166,3 +166,72 @@ def test_a_bad_flag_value_is_one_error_line_naming_the_flag_and_the_choices(argv
     assert isinstance(exit_.value.code, str) and "\n" not in exit_.value.code
     assert re.fullmatch(message + ".*", exit_.value.code), exit_.value.code
     assert capsys.readouterr().err == ""  # no box beside it
+
+
+def _refused(argv, message, monkeypatch=None):
+    """``eabc ARGV`` ends in one error line matching ``message``."""
+    with pytest.raises(SystemExit) as exit_:
+        main(argv)
+    assert isinstance(exit_.value.code, str) and "\n" not in exit_.value.code
+    assert re.search(message, exit_.value.code), exit_.value.code
+
+
+def test_what_would_fail_after_making_data_is_refused_before(tmp_path, npz, monkeypatch):
+    """Before: a built-in dataset with --env of other shapes, or data make with --cache-dir a
+    file, made the dataset (minutes) and failed only then; a dry run passed data of other shapes
+    than --env's."""
+    from eabc.data import generate  # noqa: PLC0415
+
+    def made(*args, **kwargs):
+        raise AssertionError("a dataset was made before the inputs were checked")
+
+    monkeypatch.setattr(generate, "make", made)
+    monkeypatch.setenv("EABC_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "afile").write_text("")
+    wrong = ["--dataset", "hopper-random", "--env", "Pendulum-v1", "--steps", "100"]
+    for dry in ([], ["--dry-run"]):
+        _refused(["train", *wrong, *dry], r"--env Pendulum-v1: its observations have shape \(3,\)")
+    _refused(["data", "make", "hopper-random", "--cache-dir", "afile"], "--cache-dir afile is not")
+    _refused(["train", "--dataset", str(npz), "--env", "MountainCarContinuous-v0", "--dry-run"],
+             "observations have dim 3 but MountainCarContinuous-v0")  # fmt: skip
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile", "pendulum.npz"]
+
+
+def test_algorithm_flags_are_named_in_their_errors(npz):
+    """Before: 'eabc: num_critics must be at least 2', and an AttributeError traceback for a
+    typed flag of another algorithm."""
+    dry = ["train", "--dataset", str(npz), "--dry-run"]
+    _refused([*dry, "--algo", "eabc", "--num-critics", "0"], "--num-critics must be at least 2")
+    _refused([*dry, "--algo", "eabc", "--confidence-level", "7"], "--confidence-level p must")
+    _refused([*dry, "--algo", "bc", "--num-critics", "3"], "--num-critics: bc has no setting")
+    _refused([*dry, "--algo", "td3bc", "--set", "alpha=-1"], "--set: td3bc setting alpha")
+
+
+def test_outputs_under_a_file_and_offline_runs_as_zoo_entries_are_refused(tmp_path, monkeypatch):
+    """Before: '[Errno 17] File exists' without the flag, and `zoo pack` copied an offline run
+    as if it were a SAC run."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "afile").write_text("")
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "config.json").write_text(json.dumps({"train": {"algo": "bc"}}))
+    _refused(["export-policy", "run", "--onnx", "afile/p.onnx"], "--onnx afile/p.onnx: its folder")
+    _refused(["report", "run", "--out", "afile/r"], r"--out afile/r is not a directory \(afile")
+    for argv in (["zoo", "pack", "run", "out"], ["zoo", "build", "run", "hopper"]):
+        _refused(argv, "run/config.json is not an `eabc sac` run's")
+    _refused(["zoo", "build", "run"], "eabc zoo build needs ENV")
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_sweep_checks_every_dataset_before_its_first_run(tmp_path, npz):
+    """Before: the runs on the good file trained, then '1 job(s) failed'."""
+    spec = {"datasets": [str(npz), str(tmp_path / "missing.npz")], "algos": ["bc"],
+            "steps": 100, "grid": {"hidden_dims": [[8]]}}  # fmt: skip
+    (tmp_path / "spec.yaml").write_text(json.dumps(spec))
+    _refused(["sweep", str(tmp_path / "spec.yaml"), "--root", str(tmp_path / "root")],
+             "dataset file .*missing.npz does not exist")  # fmt: skip
+    assert not (tmp_path / "root").exists()
+    spec = {**spec, "datasets": [str(npz)], "algos": ["td3bc"], "grid": {"alpha": [-1.0]}}
+    (tmp_path / "spec.yaml").write_text(json.dumps(spec))
+    _refused(["sweep", str(tmp_path / "spec.yaml"), "--root", str(tmp_path / "root"),
+              "--dry-run"], "grid: td3bc setting alpha=-1.0")  # fmt: skip

@@ -384,3 +384,12 @@ def test_hdf5_datasets_of_the_wrong_rank_or_dtype_are_refused(tmp_path, key, val
     with pytest.raises(DatasetError, match=message) as error:
         load_dataset(path)
     assert str(error.value).startswith(f"{path}: ") and "\n" not in str(error.value)
+
+
+def test_a_dataset_without_transitions_is_refused_in_one_line(tmp_path):
+    """Before: an IndexError traceback from deriving next observations of no rows."""
+    path = tmp_path / "empty.npz"
+    np.savez(path, observations=np.zeros((0, 3), np.float32), actions=np.zeros((0, 1), np.float32),
+             rewards=np.zeros(0, np.float32), terminals=np.zeros(0, bool))  # fmt: skip
+    with pytest.raises(DatasetError, match="empty.npz: empty: holds no transitions"):
+        load_file(path)

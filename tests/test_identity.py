@@ -392,6 +392,17 @@ def test_a_log_whose_scores_are_not_the_checkpoints_is_damaged(finished, tmp_pat
     assert row["status"] == "damaged" and "evaluation at step 200" in row["config"]
 
 
+def test_one_reference_score_without_the_other_is_refused_before_training(
+    tmp_path, pendulum_dataset
+):
+    """Before: the run trained, with a score that could never be computed."""
+    for low, high in [(-1200.0, None), (None, -130.0)]:
+        data = dataclasses.replace(pendulum_dataset, ref_min_score=low, ref_max_score=high)
+        with pytest.raises(DatasetError, match="has ref_m.._score but no ref_m.._score"):
+            trainer.start(TrainConfig(**SMALL), tmp_path / "one", AGENT, dataset=data)
+        assert not (tmp_path / "one").exists()
+
+
 def test_another_runs_summary_is_damage_even_where_its_numbers_agree(finished, tmp_path):
     """Another seed's (or algorithm's, or dataset's) summary.json with the same numbers: before,
     listed as done."""

@@ -496,3 +496,25 @@ def test_eabc_report_on_runs_of_a_users_own_data_reports_returns(tmp_path, capsy
         SystemExit, match=r"--baseline iql: no runs with that label; labels: bc, td3bc"
     ):
         main(["report", str(root), "--baseline", "iql"])
+
+
+def test_a_refused_report_or_results_command_writes_nothing(tmp_path):
+    """Before: results.sqlite was written before --baseline, --fix, --out, --include, --columns
+    and --filter were checked (and an --out that is a file named no flag)."""
+    root = tmp_path / "root"
+    _run_directory(root, "td3bc", [500.0, 700.0])
+    (tmp_path / "afile").write_text("")
+    refusals = [
+        (["report", str(root), "--baseline", "nope"], "--baseline nope: no runs"),
+        (["report", str(root), "--fix", "nope"], "--fix nope: no runs"),
+        (["report", str(root), "--out", str(tmp_path / "afile")], "--out .*afile is not a dir"),
+        (["report", str(root), "--include", str(tmp_path / "missing")], "missing has no runs"),
+        (["results", str(root), "--columns", "bogus"], "--columns: unknown column"),
+        (["results", str(root), "--filter", "x=1"], "bad filter 'x=1'"),
+    ]
+    for argv, message in refusals:
+        with pytest.raises(SystemExit, match=message):
+            main(argv)
+        assert sorted(p.name for p in root.iterdir()) == ["td3bc"], argv
+    main(["results", str(root)])
+    assert (root / "results.sqlite").exists()

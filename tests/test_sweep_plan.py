@@ -287,6 +287,7 @@ def test_a_spec_key_of_the_wrong_shape_from_yaml_ends_in_one_line(tmp_path):
         ("datasets: [hopper-random]\nalgos: [bc]\nseeds: 5\n", "error: seeds must be a list"),
         ("datasets: [hopper-random]\nalgos: [bc]\nseeds: []\n", "error: seeds is empty"),
         ("datasets: [hopper-random\n", "error: .*not valid YAML at line 2"),
+        ("datasets: " + "[" * 5000 + "]" * 5000, "error: .*spec.yaml: nested too deeply"),
     ]:
         spec = tmp_path / "spec.yaml"
         spec.write_text(text)

@@ -48,3 +48,17 @@ def read_file(path: str | os.PathLike) -> bytes:
     finally:
         os.close(fd)
 
+
+def check_directory(path: str | os.PathLike, flag: str) -> None:
+    """``ValueError`` naming ``flag`` when ``path`` cannot be a directory: it, or the nearest of
+    its parents that exists, is something else (a file). Checked before work whose output goes
+    there."""
+    given = expand(path)
+    where = given
+    while not where.exists() and where != where.parent:
+        where = where.parent
+    if where.exists() and not where.is_dir():
+        inside = "" if where == given else f" ({where} is a file)"
+        raise ValueError(
+            f"{flag} {path} is not a directory{inside}: give a directory (it is made if missing)"
+        )

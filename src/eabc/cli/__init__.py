@@ -34,7 +34,13 @@ from eabc.cli.experiments import (
     run_sweep,
     sweep_spec,
 )
-from eabc.cli.options import _checked, check_flags, one_line_errors, parse_settings
+from eabc.cli.options import (
+    _checked,
+    check_agent,
+    check_flags,
+    one_line_errors,
+    parse_settings,
+)
 from eabc.cli.train import (
     Evaluate,
     ExportPolicy,
@@ -56,8 +62,9 @@ __all__ = [
 
 
 def _export_policy(cmd: ExportPolicy) -> None:
-    from eabc import deploy  # noqa: PLC0415
+    from eabc import deploy, paths  # noqa: PLC0415
 
+    paths.check_directory(os.path.dirname(cmd.onnx) or ".", f"--onnx {cmd.onnx}: its folder")
     print(deploy.export_onnx(cmd.run_dir, cmd.onnx))
 
 
@@ -128,6 +135,8 @@ def parse(argv: list[str]):
     if isinstance(cmd, Train | Sac):  # checked here, so that errors name the flags
         config_class = TrainConfig if isinstance(cmd, Train) else SACTrainConfig
         cmd = dataclasses.replace(cmd, config=_checked(cmd.config, config_class))
+    if isinstance(cmd, Train) and not cmd.resume:  # the algorithm's settings, named as flags
+        check_agent(cmd.config, cmd.agent, cmd.set)
     check_flags(cmd)  # the other numbers: ranges declared on the command's fields
     return cmd
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import sys
 from pathlib import Path
 from typing import Annotated
@@ -53,9 +54,9 @@ class DataList:
 class ZooBuild:
     """Choose the medium and expert policies of an `eabc sac` run into the behaviour-policy zoo."""
 
-    run_dir: tyro.conf.Positional[str]
+    run_dir: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="RUN_DIR")]
     """The `eabc sac` run directory (its actor snapshots and log)."""
-    env: tyro.conf.Positional[str]
+    env: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="ENV")]
     """hopper, halfcheetah, walker2d, or antmaze (the AntMaze low-level policy, from an `eabc sac`
     run on eabc/AntDirection-v0)."""
     root: str | None = None
@@ -76,8 +77,10 @@ class ZooBuild:
 class ZooPack:
     """Copy a SAC run's checkpoint, log and float16 snapshots (no replay buffer) into DEST."""
 
-    run_dir: tyro.conf.Positional[str]
-    dest: tyro.conf.Positional[str]
+    run_dir: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="RUN_DIR")]
+    """The `eabc sac` run directory."""
+    dest: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="DEST")]
+    """Where the copy goes (made if missing)."""
 
 
 def run_zoo(cmd: ZooBuild | ZooPack) -> None:
@@ -129,7 +132,12 @@ class DataExport:
 
 def run_data(cmd: DataMake | DataInfo | DataList | DataExport) -> None:
     from eabc.data import generate, loaders, sources  # noqa: PLC0415
+    from eabc.training.run import check_cache_dir  # noqa: PLC0415
 
+    if cmd.cache_dir is not None:  # checked before minutes of making a dataset, not after
+        check_cache_dir(cmd.cache_dir, "--cache-dir")
+    elif os.environ.get("EABC_CACHE_DIR"):
+        check_cache_dir(os.environ["EABC_CACHE_DIR"], "$EABC_CACHE_DIR")
     if isinstance(cmd, DataMake):
         path = generate.dataset_path(cmd.name, cmd.cache_dir)
         if path.exists() and not cmd.force:

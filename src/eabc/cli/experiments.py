@@ -198,11 +198,14 @@ def sweep_spec(cmd: Sweep) -> dict:
 def run_sweep(cmd: Sweep) -> None:
     import yaml  # noqa: PLC0415
 
+    from eabc.data import sources  # noqa: PLC0415
     from eabc.experiments import results, sweep  # noqa: PLC0415
     from eabc.experiments.spec import expand  # noqa: PLC0415
 
     root = paths.expand(cmd.root)
     runs = expand(sweep_spec(cmd))
+    for dataset in dict.fromkeys(run.dataset for run in runs):  # all, before the first run
+        sources.check_source(dataset)
     if cmd.include:
         archived = sweep.archived_done(runs, [results.read_archive(d) for d in cmd.include])
         if archived:
@@ -270,21 +273,23 @@ def run_results(cmd: Results) -> None:
 
     if not paths.expand(cmd.root).is_dir():
         raise FileNotFoundError(f"{cmd.root} does not exist; give a sweep root or a run directory")
-    runs, _ = results.collect(cmd.root)
-    if runs.empty:
+    every, evaluations = results.collect(cmd.root, write=False)
+    missing = [c for c in cmd.columns if c not in every.columns]
+    if missing:
+        raise ValueError(
+            f"--columns: unknown column(s) {missing}; choose from {', '.join(every.columns)}"
+        )
+    runs = results.query(every, list(cmd.filter))  # a bad filter is refused before the store
+    results.store(cmd.root, every, evaluations)
+    if every.empty:
         print(f"no runs under {cmd.root}")
         return
-    unusable = runs["status"].isin(results.UNUSABLE)
-    for state, why in zip(runs.loc[unusable, "status"], runs.loc[unusable, "config"]):
+    unusable = every["status"].isin(results.UNUSABLE)
+    for state, why in zip(every.loc[unusable, "status"], every.loc[unusable, "config"]):
         print(f"{state}: {why}", file=sys.stderr)
-    found = len(runs)
-    runs = results.query(runs, list(cmd.filter))
     if runs.empty:
-        print(f"none of the {found} runs under {cmd.root} match {' '.join(cmd.filter)}")
+        print(f"none of the {len(every)} runs under {cmd.root} match {' '.join(cmd.filter)}")
         return
-    missing = [c for c in cmd.columns if c not in runs.columns]
-    if missing:
-        raise ValueError(f"unknown column(s) {missing}; choose from {', '.join(runs.columns)}")
     table = runs[list(cmd.columns)]
     if cmd.csv:
         print(table.to_csv(index=False), end="")
@@ -298,7 +303,11 @@ def run_report(cmd: Report) -> None:
 
     if not paths.expand(cmd.root).is_dir() and not cmd.include:
         raise FileNotFoundError(f"{cmd.root} does not exist; give a sweep root or a run directory")
-    runs, evaluations = results.collect(cmd.root)  # nothing yet on a new machine: --include
+    if cmd.out:
+        paths.check_directory(cmd.out, "--out")
+    # Stored only once every input is checked: a refused report changes nothing.
+    every, evaluations = results.collect(cmd.root, write=False)  # none on a new machine: --include
+    runs = every
     unusable = runs["status"].isin(results.UNUSABLE)
     for state, why in zip(runs.loc[unusable, "status"], runs.loc[unusable, "config"]):
         print(f"leaving out a {state} run: {why}", file=sys.stderr)
@@ -325,7 +334,9 @@ def run_report(cmd: Report) -> None:
         runs = runs[~partial]
         evaluations = evaluations[evaluations["run_id"].isin(runs["run_id"])]
     if runs.empty:
-        raise ValueError(f"no runs under {cmd.root}")
+        left_out = int(unusable.sum())
+        also = f" ({left_out} broken or damaged, listed above)" if left_out else ""
+        raise ValueError(f"no runs to report under {cmd.root}{also}")
     labels = set(labelled(runs)["label"])
     for option, label in (("--baseline", cmd.baseline), ("--fix", cmd.fix)):
         if label is not None and label not in labels:
@@ -333,6 +344,9 @@ def run_report(cmd: Report) -> None:
                 f"{option} {label}: no runs with that label; labels: {', '.join(sorted(labels))}"
             )
     out = Path(cmd.out) if cmd.out else paths.expand(cmd.root) / "report"
+    paths.check_directory(out, "--out" if cmd.out else "the report's folder")
+    if paths.expand(cmd.root).is_dir():
+        results.store(cmd.root, every, evaluations)
     fix = cmd.fix or report.RECOMMENDED
     written = report.write_report(runs, evaluations, out, cmd.baseline, fix, repeats=repeats)
     for name, path in written.items():

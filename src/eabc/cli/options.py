@@ -126,6 +126,32 @@ def _given(argv: list[str], names: tuple[str, ...]) -> str | None:
     return None
 
 
+def check_agent(config, agent, items: tuple[str, ...]) -> None:
+    """`eabc train`'s algorithm settings (its typed flags ``agent`` and ``--set`` ``items``)
+    checked against ``config.algo``'s own, before any work; ``ValueError`` naming the flag
+    (``--num-critics``) or ``--set``."""
+    from eabc.agents import get_algorithm, validation  # noqa: PLC0415
+
+    algorithm = get_algorithm(config.algo)
+    flags = {k: v for k, v in dataclasses.asdict(agent).items() if v is not None}
+    settings = parse_settings(items)
+    for source, names in (("--set: ", settings), ("", flags)):
+        unknown = sorted(set(names) - algorithm.settings())
+        if unknown:
+            named = source or " ".join("--" + name.replace("_", "-") for name in unknown) + ": "
+            raise ValueError(
+                f"{named}{algorithm.name} has no setting(s) {unknown}; it has "
+                f"{sorted(algorithm.settings())}"
+            )
+    try:
+        validation.validate(algorithm.preset, algorithm.name, flags | settings)
+    except ValueError as error:
+        message = str(error)
+        for name in flags:
+            message = re.sub(rf"\b{name}\b", "--" + name.replace("_", "-"), message)
+        raise ValueError(message if message != str(error) else f"--set: {message}") from None
+
+
 TrainOptions = _parsed_unchecked(TrainConfig)
 SACTrainOptions = _parsed_unchecked(SACTrainConfig)
 

@@ -159,6 +159,7 @@ def train_plan(cmd: Train) -> dict[str, str]:
     from eabc.experiments.sweep import estimate_seconds  # noqa: PLC0415
     from eabc.training import trainer  # noqa: PLC0415
     from eabc.training.checkpoint import CONFIG  # noqa: PLC0415
+    from eabc.training.run import check_evaluation_env  # noqa: PLC0415
 
     if cmd.resume:
         run = trainer.resume(cmd.resume, lock=False)  # reads only
@@ -179,12 +180,14 @@ def train_plan(cmd: Train) -> dict[str, str]:
         if config.dataset in generate.builtin_names() and not generate.is_current(
             path, config.dataset
         ):
+            check_evaluation_env(config)  # --env against the task's shapes, as training will
             size = generate.default_size(config.dataset)
             dataset_name, env_id = config.dataset, None
             took = generate.making_time(config.dataset)
             data = f"{config.dataset}: made first into {path} ({size:,} transitions, {took})"
         else:
             dataset = sources.load_dataset(config.dataset, config.cache_dir)
+            check_evaluation_env(config, dataset)  # its spaces against the data's
             dataset_name, env_id = dataset.name, dataset.env_id
             data = f"{dataset.name} ({dataset.size:,} transitions) from {config.dataset}"
         overrides = {

@@ -99,6 +99,11 @@ def from_arrays(arrays: dict[str, np.ndarray], attrs: dict, default_name: str) -
             "timeouts and next_observations"
         )
     n = len(arrays["observations"])
+    if n == 0:
+        raise DatasetError(
+            f"{name}: holds no transitions (its observations have 0 rows); save the data's "
+            "transitions, one row each"
+        )
     for key in ("actions", "rewards", "terminals", "timeouts", "next_observations"):
         if key in arrays and len(arrays[key]) != n:
             raise DatasetError(

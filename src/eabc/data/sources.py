@@ -10,7 +10,7 @@ from __future__ import annotations
 import os
 
 from eabc import paths
-from eabc.data import generate, loaders
+from eabc.data import generate, loaders, schema
 from eabc.data.dataset import Dataset, DatasetError
 
 
@@ -26,7 +26,27 @@ def load_dataset(source: str | os.PathLike, cache_dir: str | os.PathLike | None 
         return generate.load_or_make(text, cache_dir=cache_dir)
     if "/" in text and loaders.has_minari(text):
         return loaders.load_minari(text)
-    raise DatasetError(
+    raise _unknown(text)
+
+
+def check_source(source: str | os.PathLike) -> None:
+    """Refuse what :func:`load_dataset` would refuse for its name or path alone, loading and
+    making nothing: a file that is missing or not a regular file, a name that is none of the
+    above. A sweep checks every dataset so before its first run starts."""
+    text = str(source)
+    path = paths.expand(text)
+    if path.suffix in (".hdf5", ".h5", ".npz") or path.exists():
+        schema.regular_file(path)
+    elif not (
+        text.startswith("minari:")
+        or text in generate.builtin_names()
+        or ("/" in text and loaders.has_minari(text))
+    ):
+        raise _unknown(text)
+
+
+def _unknown(text: str) -> DatasetError:
+    return DatasetError(
         f"unknown dataset {text!r}{generate.did_you_mean(text)}: it is not a file, not a local "
         "Minari dataset and not a built-in name. Built-in names: "
         f"{', '.join(generate.builtin_names())}. For a file give its path (.hdf5, .h5 or .npz); "

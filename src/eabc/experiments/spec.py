@@ -145,6 +145,8 @@ def load_spec(path: str | os.PathLike) -> dict[str, Any]:
         spec = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
     except UnicodeDecodeError:
         raise ValueError(f"{path}: not UTF-8 text; a sweep specification is a YAML file") from None
+    except RecursionError:  # brackets nested thousands deep
+        raise ValueError(f"{path}: nested too deeply for a sweep specification; fix the file") from None
     except yaml.YAMLError as error:
         where = getattr(error, "problem_mark", None)
         line = f" at line {where.line + 1}" if where is not None else ""
@@ -344,7 +346,10 @@ def expand(spec: dict[str, Any]) -> list[RunSpec]:
             axes = {k: v for k, v in grid.items() if k in fields}
             for values in itertools.product(*axes.values()):
                 overrides = _frozen(dict(zip(axes, values)))
-                validation.validate(get_algorithm(algo).preset, algo, dict(overrides))
+                try:
+                    validation.validate(get_algorithm(algo).preset, algo, dict(overrides))
+                except validation.SettingError as error:
+                    raise ValueError(f"grid: {error}") from None
                 for seed in seeds:
                     runs.append(RunSpec(dataset, algo, seed, overrides, _frozen(train)))
     # Named combinations, beside the grid's product; breadth first (seed, then variant, then

@@ -29,9 +29,10 @@ import numpy as np
 
 from eabc import paths, pytree, ranges
 from eabc.agents import ALGORITHMS, Algorithm, get_algorithm, validation
+from eabc.data import generate, tasks
 from eabc.data.dataset import Dataset, DatasetError, Normalizer
 from eabc.data.sources import load_dataset
-from eabc.evaluation import Evaluator, check_spaces
+from eabc.evaluation import Evaluator, check_spaces, make_env
 from eabc.training import checkpoint, identity, logger, run_config
 from eabc.training.checkpoint import CONFIG
 from eabc.training.chunks import device_data
@@ -110,6 +111,28 @@ def check_cache_dir(path: str | Path, what: str) -> None:
         )
 
 
+def check_evaluation_env(config: TrainConfig, dataset: Dataset | None = None) -> None:
+    """Refuse, before any data is made or any training, an evaluation environment (``--env``)
+    that cannot be made or cannot have produced the data: the data's own spaces when ``dataset``
+    is loaded, else (a built-in dataset, perhaps still to be made) its task's environment's."""
+    if dataset is not None:
+        env_id = config.env or dataset.env_id
+        if env_id:
+            check_spaces(make_env(env_id), dataset)
+        return
+    info = tasks.env_info(tasks.parse_task(config.dataset))
+    if not config.env or info is None or config.dataset not in generate.builtin_names():
+        return
+    env, own = make_env(config.env), make_env(info.env_id)
+    for space in ("observation", "action"):
+        theirs, ours = (getattr(e, f"{space}_space").shape for e in (env, own))
+        if theirs != ours:
+            raise DatasetError(
+                f"--env {config.env}: its {space}s have shape {theirs}, but {config.dataset}'s "
+                f"({info.env_id}) have {ours}; leave --env out to evaluate in {info.env_id}"
+            )
+
+
 def resolve_agent_config(
     algo: str, dataset_name: str, overrides: dict[str, Any], steps: int | None = None
 ) -> Any:
@@ -166,6 +189,8 @@ def start(
     config = _absolute_paths(config)
     if config.cache_dir is None and os.environ.get("EABC_CACHE_DIR"):
         check_cache_dir(os.environ["EABC_CACHE_DIR"], "$EABC_CACHE_DIR")
+    if dataset is None:
+        check_evaluation_env(config)  # before a built-in dataset is made (minutes)
     dataset = dataset if dataset is not None else load_dataset(config.dataset, config.cache_dir)
     agent_config = resolve_agent_config(
         config.algo, dataset.name, agent_overrides or {}, config.steps
@@ -255,7 +280,8 @@ def _absolute_paths(config: TrainConfig) -> TrainConfig:
     if not config.dataset.startswith("minari:") and (
         path.suffix in (".hdf5", ".h5", ".npz") or path.exists()
     ):
-        config = dataclasses.replace(config, dataset=str(path.resolve()))
+        # Absolute, not resolved: a link stays the path the user gave (and errors name it).
+        config = dataclasses.replace(config, dataset=os.path.abspath(path))
     if config.cache_dir is not None:
         config = dataclasses.replace(config, cache_dir=str(Path(config.cache_dir).resolve()))
     return config
@@ -487,6 +513,15 @@ def _check_reference_scores(config: TrainConfig, dataset: Dataset) -> None:
     """Refuse reference scores that make the normalised score undefined, before any training
     (found at the first evaluation, they cost the whole first interval and left a broken run)."""
     low, high = dataset.ref_min_score, dataset.ref_max_score
+    if (low is None) != (high is None):
+        given, lacking = ("ref_min_score", "ref_max_score")
+        if low is None:
+            given, lacking = lacking, given
+        raise DatasetError(
+            f"{config.dataset}: it has {given} but no {lacking}; the normalised score needs both "
+            "(a random and an expert policy's return): add the other, or remove both to report "
+            "returns only"
+        )
     if low is None or high is None:
         return
     if not (math.isfinite(low) and math.isfinite(high)) or low == high:

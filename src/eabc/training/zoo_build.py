@@ -63,7 +63,7 @@ def build(
     was already shipped, and only the expert moves.
     """
     run_dir = Path(run_dir)
-    config = read_config(run_dir)
+    config = _sac_config(run_dir)
     env_id = config["env_id"]
     info = tasks.ENVS.get(env)
     snapshots = sorted(int(p.stem.split("_")[1]) for p in (run_dir / SNAPSHOTS).glob("actor_*.npz"))
@@ -158,6 +158,18 @@ def _training_returns(run_dir: Path) -> dict[int, float]:
         }
 
 
+def _sac_config(run_dir: Path) -> dict:
+    """The config.json of the ``eabc sac`` run in ``run_dir``; ``DatasetError`` for another
+    run's (an offline training run's has ``train`` where SAC's has ``sac`` and ``env_id``)."""
+    config = read_config(run_dir)
+    if not isinstance(config.get("sac"), dict) or not isinstance(config.get("env_id"), str):
+        raise DatasetError(
+            f"{run_dir / checkpoint.CONFIG} is not an `eabc sac` run's (no sac settings and "
+            "env_id): the zoo is built from the run directory of `eabc sac`"
+        )
+    return config
+
+
 def pack(run_dir: str | os.PathLike, dest: str | os.PathLike) -> Path:
     """Copy what continuing an ``eabc sac`` run needs into ``dest``, small enough to commit.
 
@@ -166,6 +178,7 @@ def pack(run_dir: str | os.PathLike, dest: str | os.PathLike) -> Path:
     replay buffer: ``eabc sac --resume`` on a copy of ``dest`` refills it as training goes on.
     """
     run_dir, dest = Path(run_dir), Path(dest)
+    _sac_config(run_dir)
     if not (run_dir / checkpoint.CHECKPOINT).exists():
         raise DatasetError(f"{run_dir} has no checkpoint yet; nothing to pack")
     (dest / SNAPSHOTS).mkdir(parents=True, exist_ok=True)
@@ -192,7 +205,7 @@ def build_antmaze(
     from eabc.data import antmaze, antmaze_collect, mazes  # noqa: PLC0415
 
     run_dir = Path(run_dir)
-    config = read_config(run_dir)
+    config = _sac_config(run_dir)
     if config["env_id"] != antmaze.DIRECTION_ENV_ID:
         raise DatasetError(
             f"{run_dir} trained on {config['env_id']}; the AntMaze low-level policy is trained on "
