@@ -13,6 +13,7 @@ from handcalc import make_batch
 
 from eabc import compile_cache
 from eabc.data.generate import rollout
+from eabc.training import chunks
 
 PENDULUM_RANDOM_RETURN = -1200.0
 PENDULUM_CONTROLLER_RETURN = -130.0
@@ -50,6 +51,15 @@ def pendulum_dataset():
         ref_min_score=PENDULUM_RANDOM_RETURN,
         ref_max_score=PENDULUM_CONTROLLER_RETURN,
     )
+
+
+@pytest.fixture
+def quick_chunks(monkeypatch):
+    """Training chunks built by $EABC_FAST_COMPILE (XLA O0, no unroll) for tests of a run's
+    plumbing that train a few hundred steps of a program no other test compiles: about half the
+    compile time, and such short runs barely feel the slower steps. Learning checks keep the
+    default build."""
+    monkeypatch.setenv(chunks.FAST_COMPILE_ENV, "1")
 
 
 @pytest.fixture

@@ -10,16 +10,21 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from handcalc import ACT, OBS, B, member
+from handcalc import ACT, OBS, B, member, quick_jit
 from learning import MARGIN, late_gain
 
 from eabc import pytree
 from eabc.agents import dynamics, get_algorithm, mopo, morel
 from eabc.agents.common import Batch
 from eabc.training import chunks, trainer
-from eabc.training.chunks import FAST_COMPILE_OPTIONS
 
 SMALL = {"model_members": 3, "model_elites": 2, "model_hidden_dims": (8, 8), "hidden_dims": (8, 8)}
+# The refill tests' one setting, so that the update and the rollout compile once for them all.
+REFILL = mopo.MOPOConfig(
+    **SMALL, rollout_length=2, rollout_interval=2, real_ratio=0.3, termination="none"
+)
+mopo_update = quick_jit(mopo.update)
+mopo_rollout = quick_jit(mopo.rollout)
 
 
 def np_predict(params, obs, act, k, activation="swish"):
@@ -75,20 +80,24 @@ def test_dynamics_loss_is_the_gaussian_nll_with_decay_and_bounds(batch):
     np.testing.assert_allclose(loss, nll.sum() + decay + bounds, rtol=1e-5)
 
 
-def test_dynamics_beats_predicting_the_mean_and_is_deterministic(pendulum_dataset):
+@pytest.fixture(scope="module")
+def pendulum_fit(pendulum_dataset):
+    """``(data, config, (params, elites, info))``: one 8-epoch fit on the Pendulum data, shared by
+    the tests that read a fitted model (a fit compiles its epoch and scoring programs anew)."""
     from eabc.data.dataset import Normalizer
 
-    normalizer = Normalizer.fit(pendulum_dataset.observations)
-    data = chunks.device_data(pendulum_dataset, normalizer)
+    data = chunks.device_data(pendulum_dataset, Normalizer.fit(pendulum_dataset.observations))
+    # patience 10: the 8 epochs end by the cap, so a fit stopped after epoch 4 continues them all.
     config = dynamics.DynamicsConfig(
-        num_members=3, num_elites=2, hidden_dims=(64, 64), max_epochs=8
+        num_members=3, num_elites=2, hidden_dims=(64, 64), max_epochs=8, patience=10
     )
-    params, elites, info = dynamics.fit(jax.random.PRNGKey(0), data, config)
+    return data, config, dynamics.fit(jax.random.PRNGKey(0), data, config)
+
+
+def test_dynamics_beats_predicting_the_mean(pendulum_fit):
+    _, _, (params, elites, info) = pendulum_fit
     assert info["model_heldout_mse"] < 0.2 * info["model_heldout_mse_of_mean"], info
     assert elites.shape == (2,) and len(set(np.asarray(elites).tolist())) == 2
-    again, elites_again, _ = dynamics.fit(jax.random.PRNGKey(0), data, config)
-    np.testing.assert_array_equal(again["net"]["w1"], params["net"]["w1"])
-    np.testing.assert_array_equal(elites_again, elites)
 
 
 class Memory:
@@ -105,23 +114,24 @@ class Memory:
         self.saves += 1
 
 
-def test_a_fit_stopped_between_epochs_continues_to_the_same_members(pendulum_dataset):
-    from eabc.data.dataset import Normalizer
-
-    data = chunks.device_data(pendulum_dataset, Normalizer.fit(pendulum_dataset.observations))
-    config = dynamics.DynamicsConfig(num_members=3, num_elites=2, hidden_dims=(16, 16),
-                                     max_epochs=4, patience=10)  # fmt: skip
-    whole, whole_elites, whole_info = dynamics.fit(jax.random.PRNGKey(0), data, config)
+def test_a_fit_is_deterministic_and_one_stopped_between_epochs_continues_to_the_same_members(
+    pendulum_fit,
+):
+    """A fit of the same key stopped after epoch 4 and continued ends with the members, elites
+    and summary of the fixture's fit, bit for bit (so a fit is also deterministic)."""
+    data, config, (whole, whole_elites, whole_info) = pendulum_fit
     memory, lines = Memory(), []
-    first = dataclasses.replace(config, max_epochs=2)  # stopped after its second epoch
+    first = dataclasses.replace(config, max_epochs=4)  # stopped after its fourth epoch
     dynamics.fit(jax.random.PRNGKey(0), data, first, log=lines.append, progress=memory)
-    assert memory.saves == 2
+    assert memory.saves == 4
     lines.clear()
     params, elites, info = dynamics.fit(
         jax.random.PRNGKey(0), data, config, log=lines.append, progress=memory
     )
-    assert "continuing the fit after epoch 2" in lines[0]
-    assert [line.split(":")[0] for line in lines[1:]] == ["dynamics epoch 3", "dynamics epoch 4"]
+    assert "continuing the fit after epoch 4" in lines[0]
+    assert [line.split(":")[0] for line in lines[1:]] == [
+        f"dynamics epoch {epoch}" for epoch in (5, 6, 7, 8)
+    ]
     jax.tree.map(np.testing.assert_array_equal, params, whole)
     np.testing.assert_array_equal(elites, whole_elites)
     assert info == whole_info
@@ -216,31 +226,28 @@ def test_termination_rules_are_mbpo_static_functions():
 def test_rollouts_fill_the_ring_buffer_and_stop_at_terminals(batch):
     config = mopo.MOPOConfig(**SMALL, rollout_length=3, buffer_capacity=32, termination="none")
     state = model_state(config)
-    new, _ = mopo.rollout(state, batch.observations, jax.random.PRNGKey(0), config, 1.0)
+    new, _ = mopo_rollout(state, batch.observations, jax.random.PRNGKey(0), config, 1.0)
     assert int(new.buffer_count) == 3 * B and int(new.buffer_ptr) == 3 * B
     buffer = new.buffer
     np.testing.assert_allclose(buffer.observations[:B], batch.observations, rtol=1e-6)
     np.testing.assert_array_equal(buffer.observations[B : 2 * B], buffer.next_observations[:B])
-    again, _ = mopo.rollout(new, batch.observations, jax.random.PRNGKey(1), config, 1.0)
+    again, _ = mopo_rollout(new, batch.observations, jax.random.PRNGKey(1), config, 1.0)
     assert int(again.buffer_count) == 32 and int(again.buffer_ptr) == (6 * B) % 32  # wrapped
     np.testing.assert_allclose(
         again.buffer.observations[3 * B : 4 * B], batch.observations, rtol=1e-6
     )
     halting = state.replace(halt_threshold=jnp.asarray(-1.0))  # every step halts
-    new, metrics = mopo.rollout(halting, batch.observations, jax.random.PRNGKey(0), config, 1.0)
+    new, metrics = mopo_rollout(halting, batch.observations, jax.random.PRNGKey(0), config, 1.0)
     assert int(new.buffer_count) == B, "only the first step of each rollout is written"
     np.testing.assert_allclose(metrics["rollout_done"], 1.0)
 
 
 def test_update_refills_every_interval_and_mixes_real_data(batch):
-    config = mopo.MOPOConfig(
-        **SMALL, rollout_length=2, rollout_interval=2, real_ratio=0.3, termination="none"
-    )
+    config = REFILL  # rollouts of 2 steps every 2 steps
     state = model_state(config)
-    update = jax.jit(mopo.update, static_argnums=(3, 4), compiler_options=FAST_COMPILE_OPTIONS)
     counts = []
     for i in range(4):
-        state, metrics = update(state, batch, jax.random.PRNGKey(i), config, 1.0)
+        state, metrics = mopo_update(state, batch, jax.random.PRNGKey(i), config, 1.0)
         counts.append(int(metrics["model_buffer"]))
     assert counts == [2 * B, 2 * B, 4 * B, 4 * B]
     mixed = mopo.mixed_batch(state, batch, jax.random.PRNGKey(0), config)
@@ -250,16 +257,15 @@ def test_update_refills_every_interval_and_mixes_real_data(batch):
 def test_every_step_reports_the_latest_refills_metrics_so_the_log_shows_their_values(batch):
     """Refills come every ``rollout_interval`` steps; the steps between report the latest one's
     metrics, so a chunk's mean (``summarize_metrics``) is the refills' value, not a fraction."""
-    config = mopo.MOPOConfig(**SMALL, rollout_length=2, rollout_interval=3, termination="none")
+    config = REFILL  # rollouts every 2 steps
     state = model_state(config)
-    _, expected = mopo.rollout(
+    _, expected = mopo_rollout(
         state, batch.observations, jax.random.split(jax.random.PRNGKey(0), 3)[0], config, 1.0
     )
     assert float(expected["rollout_penalty"]) > 0
-    update = jax.jit(mopo.update, static_argnums=(3, 4), compiler_options=FAST_COMPILE_OPTIONS)
     steps = []
-    for i in range(3):  # one refill (step 0), then two steps without
-        state, metrics = update(state, batch, jax.random.PRNGKey(i), config, 1.0)
+    for i in range(2):  # a refill (step 0), then a step without
+        state, metrics = mopo_update(state, batch, jax.random.PRNGKey(i), config, 1.0)
         steps.append(metrics)
     for name in mopo.ROLLOUT_METRICS:
         for metrics in steps:
@@ -304,39 +310,58 @@ LEARNING = {
 }
 
 
-def test_the_trained_model_is_saved_with_the_run_and_resumed(tmp_path, pendulum_dataset):
-    config = trainer.TrainConfig(algo="morel", steps=200, log_interval=100, eval_interval=200,
-                                 checkpoint_interval=100, eval_episodes=1, env="Pendulum-v1")  # fmt: skip
-    overrides = {**LEARNING, "hidden_dims": (8, 8), "model_max_epochs": 2}
-    run = trainer.start(config, tmp_path / "m", overrides, pendulum_dataset)
-    assert np.isfinite(float(run.state["agent"].halt_threshold))
-    trained = np.asarray(run.state["agent"].model["net"]["w1"])
+RUN = {**LEARNING, "hidden_dims": (8, 8), "model_max_epochs": 2}
+"""The run tests' settings: 8-8 SAC on a model of 2 epochs."""
+
+
+def run_config(algo: str, steps: int) -> trainer.TrainConfig:
+    return trainer.TrainConfig(algo=algo, steps=steps, log_interval=100, eval_interval=steps,
+                               checkpoint_interval=100, eval_episodes=1, env="Pendulum-v1")  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def morel_run(tmp_path_factory, pendulum_dataset):
+    """A MOReL run of 200 steps and its model right after the fit: the tests that read a run's
+    fitted model share its fit and its compiled programs (quickly compiled chunks, as
+    ``quick_chunks`` gives a test)."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv(chunks.FAST_COMPILE_ENV, "1")
+        run = trainer.start(
+            run_config("morel", 200), tmp_path_factory.mktemp("morel") / "m", RUN, pendulum_dataset
+        )
+        fitted = jax.device_get((run.state["agent"].model, run.state["agent"].halt_threshold))
+        trainer.train(run, progress=False)
+    return run, fitted
+
+
+def test_the_trained_model_is_saved_with_the_run_and_resumed(morel_run, pendulum_dataset):
+    run, (model, threshold) = morel_run
+    assert not (run.run_dir / trainer.PRETRAIN_PROGRESS).exists()  # dropped once saved
+    assert np.isfinite(float(threshold))
     fresh = mopo.init(
         jax.random.PRNGKey(0), pendulum_dataset.obs_dim, pendulum_dataset.act_dim, run.agent_config
     )
-    assert not np.allclose(trained, fresh.model["net"]["w1"])
-    trainer.train(run, progress=False)
-    resumed = trainer.resume(tmp_path / "m", pendulum_dataset)
-    np.testing.assert_array_equal(resumed.state["agent"].model["net"]["w1"], trained)
-    np.testing.assert_array_equal(
-        resumed.state["agent"].halt_threshold, run.state["agent"].halt_threshold
-    )
+    assert not np.allclose(model["net"]["w1"], fresh.model["net"]["w1"])
+    resumed = trainer.resume(run.run_dir, pendulum_dataset, lock=False)
+    assert resumed.step == 200
+    jax.tree.map(np.testing.assert_array_equal, resumed.state["agent"].model, model)
+    np.testing.assert_array_equal(resumed.state["agent"].halt_threshold, threshold)
 
 
-def test_a_run_killed_after_its_model_fit_resumes_with_the_fitted_model(tmp_path, pendulum_dataset):
+def test_a_run_killed_after_its_model_fit_resumes_with_the_fitted_model(
+    tmp_path, pendulum_dataset, quick_chunks
+):
     """The fit can take an hour on hopper: start() checkpoints it at step 0, so a run killed
     before its first training checkpoint does not fit again, and trains as an uninterrupted one."""
-    config = trainer.TrainConfig(algo="mopo", steps=100, log_interval=100, eval_interval=100,
-                                 checkpoint_interval=100, eval_episodes=1, env="Pendulum-v1")  # fmt: skip
-    overrides = {**LEARNING, "hidden_dims": (8, 8), "model_max_epochs": 2}
-    run = trainer.start(config, tmp_path / "killed", overrides, pendulum_dataset)
+    config = run_config("mopo", 100)
+    run = trainer.start(config, tmp_path / "killed", RUN, pendulum_dataset)
     fitted = np.asarray(run.state["agent"].model["net"]["w1"])
     run.lock.release()  # killed here, before any training step
     resumed = trainer.resume(tmp_path / "killed", pendulum_dataset)
     assert resumed.step == 0
     np.testing.assert_array_equal(resumed.state["agent"].model["net"]["w1"], fitted)
     trainer.train(resumed, progress=False)
-    whole = trainer.start(config, tmp_path / "whole", overrides, pendulum_dataset)
+    whole = trainer.start(config, tmp_path / "whole", RUN, pendulum_dataset)
     trainer.train(whole, progress=False)
     for name in ("log.csv", "summary.json"):
         killed_rows = (tmp_path / "killed" / name).read_text().splitlines()
@@ -352,15 +377,10 @@ class Killed(Exception):
 
 
 def test_a_run_killed_during_its_model_fit_continues_the_fit(
-    tmp_path, pendulum_dataset, monkeypatch, capsys
+    tmp_path, pendulum_dataset, morel_run, monkeypatch, capsys
 ):
-    """A kill between two epochs of the fit: the run directory holds the config and the fit's
-    progress; resuming fits only the epochs left and ends with the model of a run not killed."""
-    config = trainer.TrainConfig(algo="morel", steps=100, log_interval=100, eval_interval=100,
-                                 checkpoint_interval=100, eval_episodes=1, env="Pendulum-v1")  # fmt: skip
-    overrides = {**LEARNING, "hidden_dims": (8, 8), "model_max_epochs": 3}
-    whole = trainer.start(config, tmp_path / "whole", overrides, pendulum_dataset)
-    assert not (tmp_path / "whole" / trainer.PRETRAIN_PROGRESS).exists()  # dropped once saved
+    """A kill between the two epochs of the fit: the run directory holds the config and the fit's
+    progress; resuming fits only the epoch left and ends with the model of a run not killed."""
 
     def kill_after_first_epoch(text):
         if text.startswith("dynamics epoch 1:"):
@@ -368,7 +388,7 @@ def test_a_run_killed_during_its_model_fit_continues_the_fit(
 
     monkeypatch.setattr(mopo, "_log", kill_after_first_epoch)
     with pytest.raises(Killed):
-        trainer.start(config, tmp_path / "killed", overrides, pendulum_dataset)
+        trainer.start(run_config("morel", 100), tmp_path / "killed", RUN, pendulum_dataset)
     monkeypatch.undo()
     killed = tmp_path / "killed"
     assert (killed / "config.json").exists() and (killed / trainer.PRETRAIN_PROGRESS).exists()
@@ -379,14 +399,10 @@ def test_a_run_killed_during_its_model_fit_continues_the_fit(
     assert "continuing the fit after epoch 1" in err
     assert "dynamics epoch 2:" in err and "dynamics epoch 1:" not in err
     assert resumed.step == 0 and not (killed / trainer.PRETRAIN_PROGRESS).exists()
-    jax.tree.map(
-        np.testing.assert_array_equal, resumed.state["agent"].model, whole.state["agent"].model
-    )
-    np.testing.assert_array_equal(
-        resumed.state["agent"].halt_threshold, whole.state["agent"].halt_threshold
-    )
+    model, threshold = morel_run[1]  # a run of the same seed and model settings, not killed
+    jax.tree.map(np.testing.assert_array_equal, resumed.state["agent"].model, model)
+    np.testing.assert_array_equal(resumed.state["agent"].halt_threshold, threshold)
     resumed.lock.release()
-    whole.lock.release()
 
 
 # The learning check's settings, each for a reason seen on this data:
