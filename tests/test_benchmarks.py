@@ -56,3 +56,39 @@ def test_gpu_script_smoke_mode_prints_what_the_readme_quotes(tmp_path):
     rows = figures["projection"]
     assert [r["programs"] for r in rows] == [38]  # ceil(75 runs / 2 per program)
     assert all(r["hours"] >= r["train_hours"] > 0 for r in rows)
+
+
+def test_the_probe_has_at_least_300_cases_in_its_six_classes(tmp_path):
+    """benchmarks/probe.py --list: the cases are made without running any (the runs they copy
+    are made only by a real probe)."""
+    import probe_cases  # noqa: PLC0415
+
+    cases = probe_cases.all_cases(tmp_path / "base")
+    counts = {group: sum(c.group == group for c in cases) for group in range(1, 7)}
+    assert len(cases) >= 300 and all(counts.values()), counts
+    assert len({(c.group, c.name) for c in cases}) == len(cases), "every case has its own name"
+
+
+def test_the_probe_judges_refusals_and_results_as_its_docstring_says(tmp_path):
+    import probe  # noqa: PLC0415
+
+    refuse = probe.Case(5, "x", ["train"], "refuse", names=("--steps",))
+    work = probe.Case(5, "y", ["train"], "work", check=lambda folder, outcome: None)
+    line = "error: --steps must be an integer, got 'x'\n"
+    judged = {
+        "good refusal": (refuse, probe.Outcome(1, "", line, 0.1), {}, {}),
+        "a refusal naming nothing": (refuse, probe.Outcome(1, "", "error: no\n", 0.1), {}, {}),
+        "a refusal that wrote": (refuse, probe.Outcome(1, "", line, 0.1), {}, {"f": "1"}),
+        "exit 0 on bad input": (refuse, probe.Outcome(0, "ok", "", 0.1), {}, {}),
+        "a traceback": (
+            refuse,
+            probe.Outcome(1, "", "Traceback (most recent call last):\nE\n", 0.1),
+            {},
+            {},
+        ),  # fmt: skip
+        "a hang": (refuse, probe.Outcome(-9, "", "", 60.0, timed_out=True), {}, {}),
+        "good work": (work, probe.Outcome(0, "ok", "", 0.1), {}, {"f": "1"}),
+        "good input refused": (work, probe.Outcome(1, "", line, 0.1), {}, {}),
+    }
+    verdicts = {k: probe.verdict(*v, tmp_path) for k, v in judged.items()}
+    assert [k for k, why in verdicts.items() if why is None] == ["good refusal", "good work"]
