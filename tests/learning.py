@@ -11,12 +11,15 @@ MARGIN = 30.0
 """Normalised points the late evaluations must gain over the untrained policy."""
 
 
-def late_gain(tmp_path, dataset, algo: str, overrides: dict) -> tuple[float, float, dict]:
+def late_gain(
+    tmp_path, dataset, algo: str, overrides: dict, batch_size: int | None = None
+) -> tuple[float, float, dict]:
     """``(untrained score, mean score at steps 2000 and 3000, every evaluation)`` of a 3000-step
-    run with 64-64 networks."""
+    run with 64-64 networks, on batches of ``batch_size`` (None: the algorithm's own)."""
     config = trainer.TrainConfig(
         dataset="pendulum-swingup",
         algo=algo,
+        batch_size=batch_size,
         steps=3000,
         log_interval=100,
         eval_interval=1000,
