@@ -135,7 +135,9 @@ def test_durations_and_the_first_job_that_fits_a_deadline():
     assert sweep.next_job([], [], now=0.0, deadline=100.0) is None
 
 
-def test_within_starts_only_the_runs_that_end_in_time(tmp_path, capsys, pendulum_dataset):
+def test_within_starts_only_the_runs_that_end_in_time(
+    tmp_path, capsys, pendulum_dataset, quick_chunks
+):
     from eabc.data.loaders import save_npz
 
     data = tmp_path / "pend.npz"
@@ -144,7 +146,7 @@ def test_within_starts_only_the_runs_that_end_in_time(tmp_path, capsys, pendulum
     # td3bc: ~0.5 s by its hint; EABC with 50 critics: ~10 s. Only the first fits in 5 s.
     spec.write_text(
         f"datasets: [{data}]\nvariants:\n- {{algo: eabc, num_critics: 50, confidence_level: 1.0}}"
-        "\n- {algo: td3bc}\nseeds: [0]\nsteps: 300\n"
+        "\n- {algo: td3bc, hidden_dims: [32, 32]}\nseeds: [0]\nsteps: 300\n"
         "train: {eval_interval: 300, eval_episodes: 1, log_interval: 100, env: Pendulum-v1}\n"
     )
     root = tmp_path / "root"
@@ -198,7 +200,7 @@ def test_runs_an_earlier_report_holds_as_done_are_not_run_again(tmp_path, capsys
 
 
 def test_a_run_another_root_has_done_or_is_training_is_left_to_it(
-    tmp_path, capsys, pendulum_dataset
+    tmp_path, capsys, pendulum_dataset, quick_chunks
 ):
     import os
     import socket
@@ -215,6 +217,7 @@ def test_a_run_another_root_has_done_or_is_training_is_left_to_it(
     spec = tmp_path / "spec.yaml"
     spec.write_text(
         f"datasets: [{data}]\nalgos: [td3bc]\nseeds: [0, 1, 2]\nsteps: 300\n"
+        "grid: {hidden_dims: [[32, 32]]}\n"
         "train: {eval_interval: 300, eval_episodes: 1, log_interval: 100, env: Pendulum-v1}\n"
     )
     done, busy, free = expand(yaml.safe_load(spec.read_text()))
