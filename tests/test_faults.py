@@ -26,7 +26,7 @@ from eabc.data.loaders import save_npz
 from eabc.data.sources import load_dataset
 from eabc.experiments import results, sweep
 from eabc.experiments.spec import expand
-from eabc.training import checkpoint, logger, trainer
+from eabc.training import checkpoint, chunks, logger, trainer
 from eabc.training.checkpoint import CheckpointError
 from eabc.training.lock import OWNER, RunLockedError
 from eabc.training.trainer import TrainConfig
@@ -43,6 +43,16 @@ SMALL = dict(
 AGENT = dict(num_critics=2, confidence_level=0.5, hidden_dims=(32, 32))
 WALL = ("wall_time", "steps_per_s", "wall_time_s")
 """Wall-clock fields, the only ones allowed to differ between a resumed and a straight run."""
+
+
+@pytest.fixture(scope="module", autouse=True)
+def quick_chunks_for_the_module():
+    """Every run here, the sweeps' workers included, trains quickly compiled chunks (conftest's
+    quick_chunks, for the whole module: the straight run and the runs compared with it must run
+    the same build)."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv(chunks.FAST_COMPILE_ENV, "1")
+        yield
 
 
 def start(tmp_path, name, dataset, agent=AGENT, **overrides):
@@ -346,9 +356,11 @@ def test_killed_sweep_leaves_no_worker_and_its_restart_matches(tmp_path, pendulu
     assert sweep.status(run, root)[0] == "partial"
 
     subprocess.run(cli, check=True, stdout=subprocess.DEVNULL)
-    # The same sweep never interrupted (also single-threaded workers, so the same arithmetic).
-    subprocess.run([*cli[:-1], str(tmp_path / "straight")], check=True, stdout=subprocess.DEVNULL)
-    assert_same_results(tmp_path / "straight" / "runs" / run.run_id, run_dir)
+    # The same run never interrupted, in the worker a sweep starts (single-threaded, so the same
+    # arithmetic), from this process's own pool: no third sweep process to start.
+    straight = tmp_path / "straight"
+    sweep.run_local(sweep.jobs([run], straight, "processes"), straight, 1, log=lambda _: None)
+    assert_same_results(straight / "runs" / run.run_id, run_dir)
 
 
 def _alive(pid: int) -> bool:
