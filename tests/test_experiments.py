@@ -17,6 +17,7 @@ import pandas as pd
 import pytest
 import yaml
 
+from eabc.cli import main
 from eabc.data.loaders import save_npz
 from eabc.experiments import results, sweep
 from eabc.experiments.presets import PRESETS
@@ -35,7 +36,9 @@ SMALL = dict(
 AGENT = dict(num_critics=3, confidence_level=0.5, hidden_dims=(32, 32))
 
 
-def test_seed_vmapped_training_equals_training_the_seeds_one_by_one(tmp_path, pendulum_dataset):
+def test_seed_vmapped_training_equals_training_the_seeds_one_by_one(
+    tmp_path, pendulum_dataset, quick_chunks
+):
     def start(name, seed):
         config = TrainConfig(dataset="pendulum", seed=seed, **SMALL)
         return trainer.start(config, tmp_path / name, AGENT, dataset=pendulum_dataset)
@@ -87,13 +90,16 @@ def test_sweep_expansion_ids_and_validation():
 
 
 @pytest.fixture
-def two_datasets(tmp_path, pendulum_dataset):
+def two_datasets(tmp_path, pendulum_dataset, quick_chunks):
+    """Two dataset files of the same size, so that every program compiles once for both; the
+    sweeps' workers train quickly compiled chunks (quick_chunks reaches them through the
+    environment)."""
     paths = []
     for i, name in enumerate(("pendA", "pendB")):
         data = dataclasses.replace(pendulum_dataset, name=name)
-        if i:  # the second dataset: every other transition, a different dataset
+        if i:  # the second dataset: its 200-step episodes in another order, a different dataset
             data = dataclasses.replace(
-                data, **{k: getattr(data, k)[::2] for k in
+                data, **{k: np.roll(getattr(data, k), 1000, axis=0) for k in
                          ("observations", "actions", "rewards", "next_observations",
                           "terminals", "timeouts")}
             )  # fmt: skip
@@ -127,7 +133,7 @@ def test_local_sweep_is_interrupted_resumed_and_stored(tmp_path, two_datasets):
     interrupted = [r for r, s in zip(runs, states) if s == "partial"]
     assert interrupted and states.count("done") < len(runs)
 
-    subprocess.run(_cli(two_datasets, root), check=True)
+    main(_cli(two_datasets, root)[3:])  # the sweep again, from this process (its workers are not)
     assert [sweep.status(r, root)[0] for r in runs] == ["done"] * len(runs)
     table, evaluations = results.collect(root)
     assert len(table) == 4 and set(table["status"]) == {"done"}
@@ -151,7 +157,7 @@ def test_local_sweep_is_interrupted_resumed_and_stored(tmp_path, two_datasets):
     assert set(results.query(table, ["algo=bc"]).algo) == {"bc"}
 
     # The report: every table and figure, with the stored numbers in the table.
-    subprocess.run([sys.executable, "-m", "eabc.cli", "report", str(root)], check=True)
+    main(["report", str(root)])
     out = root / "report"
     for name in ("table.md", "table.html", "table.tex", "aggregate.md", "report.md"):
         assert (out / name).stat().st_size > 0, name
