@@ -16,6 +16,8 @@ from eabc.agents import bear, get_algorithm, uwac
 from eabc.training.chunks import FAST_COMPILE_OPTIONS
 
 SMALL = {"hidden_dims": (8, 8), "vae_hidden_dims": (8, 8)}
+UPDATE = bear.BEARConfig(**SMALL, warmup_steps=0)
+"""The settings of the tests of BEAR's whole step, so that its update compiles once for them."""
 # One step each: compiled quickly (XLA O0), since a test runs them once or twice.
 bear_update = jax.jit(bear.update, static_argnums=(3, 4), compiler_options=FAST_COMPILE_OPTIONS)
 uwac_update = jax.jit(uwac.update, static_argnums=(3, 4), compiler_options=FAST_COMPILE_OPTIONS)
@@ -191,21 +193,23 @@ def test_bear_actor_loss_is_value_plus_alpha_mmd_after_the_warmup(batch, after_w
 
 
 def test_multiplier_rises_while_the_mmd_exceeds_epsilon_and_stays_clipped(batch):
-    config = bear.BEARConfig(**SMALL, init_log_lagrange=0.0)
-    state = bear_state(config)
+    config = UPDATE  # log(alpha) starts at 0 here
+    state = bear_state(config).replace(log_lagrange=jnp.asarray(0.0))
     new, metrics = bear_update(state, batch, jax.random.PRNGKey(0), config, 1.0)
     # Adam's first step moves log(alpha) by lr * sign(mean(MMD) - epsilon).
     expected = 1e-3 * np.sign(float(metrics["mmd"]) - 0.05)
     np.testing.assert_allclose(new.log_lagrange, expected, rtol=1e-4)
     grad = jax.grad(bear.lagrange_loss)(jnp.asarray(0.0), jnp.asarray([0.01, 0.02]), config)
     assert float(grad) > 0, "below epsilon the multiplier falls"
-    top = state.replace(log_lagrange=jnp.asarray(10.0))
-    high = dataclasses.replace(config, mmd_threshold=-1.0)  # MMD always above: alpha would rise
-    assert float(bear_update(top, batch, jax.random.PRNGKey(0), high, 1.0)[0].log_lagrange) == 10.0
+    assert float(metrics["mmd"]) > config.mmd_threshold  # so alpha would rise at the clip too
+    top = state.replace(log_lagrange=jnp.asarray(config.max_log_lagrange))
+    assert (
+        float(bear_update(top, batch, jax.random.PRNGKey(0), config, 1.0)[0].log_lagrange) == 10.0
+    )
 
 
 def test_bear_update_trains_everything_and_moves_both_targets(batch):
-    config = bear.BEARConfig(**SMALL, warmup_steps=0)
+    config = UPDATE
     state = bear_state(config)
     new, metrics = bear_update(state, batch, jax.random.PRNGKey(1), config, 1.0)
     for name in ("actor", "critic", "vae"):
