@@ -10,6 +10,8 @@ from test_report import make_results
 from eabc.cli import main
 from eabc.experiments import report, results
 
+pytestmark = pytest.mark.usefixtures("quick_figures")  # tables and text, not figures
+
 
 def _archive(tmp_path, runs, evaluations, name="earlier"):
     out = tmp_path / name

@@ -8,6 +8,8 @@ import pytest
 
 from eabc.experiments import compare, report
 
+pytestmark = pytest.mark.usefixtures("quick_figures")  # tables and text, not figures
+
 
 def runs_frame(scores: dict[tuple[str, str], list[float]]) -> pd.DataFrame:
     rows = []

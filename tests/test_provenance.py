@@ -5,10 +5,13 @@ from __future__ import annotations
 import json
 import subprocess
 
+import pytest
 from test_report import make_results
 
 from eabc.experiments import report, results
 from eabc.training import provenance
+
+pytestmark = pytest.mark.usefixtures("quick_figures")  # tables and text, not figures
 
 
 def test_a_segment_names_the_step_machine_code_and_libraries():

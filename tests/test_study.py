@@ -8,6 +8,8 @@ from eabc import cli
 from eabc.experiments.presets import PRESETS
 from eabc.experiments.spec import expand
 
+pytestmark = pytest.mark.usefixtures("quick_figures")  # tables and text, not figures
+
 
 def test_variants_expand_breadth_first_beside_the_grid():
     spec = {
