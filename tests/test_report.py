@@ -289,7 +289,7 @@ def test_bad_input_gives_clear_errors(results):
         figures.plot_ablation(runs, evaluations, "num_critics", "unused.png", algo="cql")
 
 
-def test_report_lists_runs_whose_critics_diverged(results, tmp_path):
+def test_report_lists_runs_whose_critics_diverged(results, tmp_path, quick_figures):
     runs, evaluations = results
     runs = runs.assign(q_out_of_range_step=np.nan)
     runs.loc[3, "q_out_of_range_step"] = 12000
@@ -318,7 +318,7 @@ def test_figures_are_print_ready_and_name_the_algorithms_as_the_paper_does(writt
 
 
 def test_every_summary_says_what_it_rests_on_and_warns_when_that_is_thin(
-    results, written, tmp_path
+    results, written, tmp_path, quick_figures
 ):
     runs, evaluations = results
     text = written[1]["report.md"].read_text()
@@ -420,7 +420,7 @@ def without_scores(runs: pd.DataFrame, evaluations: pd.DataFrame, datasets=DATAS
     return runs, evaluations
 
 
-def test_runs_without_reference_scores_are_reported_in_raw_return(results, tmp_path):
+def test_runs_without_reference_scores_are_reported_in_raw_return(results, tmp_path, quick_figures):
     runs, evaluations = without_scores(*results)
     published = runs[(runs["algo"] == "eabc") & (runs["variant"] == "")]
     recommended = published.assign(algo="eabc-ln", run_id=published["run_id"] + "-ln")
@@ -441,7 +441,9 @@ def test_runs_without_reference_scores_are_reported_in_raw_return(results, tmp_p
     assert "profiles.png" not in paths and "Raw return" in paths["table.html"].read_text()
 
 
-def test_a_dataset_without_reference_scores_gets_a_section_of_returns(results, tmp_path):
+def test_a_dataset_without_reference_scores_gets_a_section_of_returns(
+    results, tmp_path, quick_figures
+):
     runs, evaluations = without_scores(*results, datasets=["hopper-random"])
     paths = report.write_report(runs, evaluations, tmp_path)
     assert set(markdown_rows(paths["table.md"].read_text())) == {"walker2d-medium", "Average"}
@@ -481,7 +483,7 @@ def _run_directory(root, algo: str, returns: list[float]):
     (run_dir / "summary.json").write_text(json.dumps(summary))
 
 
-def test_eabc_report_on_runs_of_a_users_own_data_reports_returns(tmp_path, capsys):
+def test_eabc_report_on_runs_of_a_users_own_data_reports_returns(tmp_path, capsys, quick_figures):
     """Before: nothing written, and 'no finished run is labelled td3bc; the labels are: '."""
     root = tmp_path / "root"
     _run_directory(root, "td3bc", [500.0, 700.0])
