@@ -20,7 +20,7 @@ def npz(tmp_path, pendulum_dataset):
     return path
 
 
-def test_train_then_resume_then_evaluate(tmp_path, npz, capsys):
+def test_train_then_resume_then_evaluate(tmp_path, npz, capsys, quick_chunks):
     run_dir = tmp_path / "run"
     common = [
         "--dataset",
@@ -99,7 +99,9 @@ def test_data_commands(tmp_path, capsys, monkeypatch):
         main(["data", "export", "hopper-random", "--cache-dir", str(tmp_path)])
 
 
-def test_other_algorithms_and_any_setting_from_the_command_line(tmp_path, npz, capsys):
+def test_other_algorithms_and_any_setting_from_the_command_line(
+    tmp_path, npz, capsys, quick_chunks
+):
     common = ["--dataset", str(npz), "--steps", "100", "--log-interval", "100",
               "--eval-interval", "100", "--checkpoint-interval", "100", "--eval-episodes", "1",
               "--no-progress"]  # fmt: skip
@@ -118,9 +120,9 @@ def test_other_algorithms_and_any_setting_from_the_command_line(tmp_path, npz, c
 def test_sac_command_trains_and_resumes(tmp_path, capsys):
     run_dir = tmp_path / "sac"
     args = ["sac", "--env", "Pendulum-v1", "--steps", "400", "--start-steps", "200",
-            "--update-after", "100", "--eval-interval", "200", "--snapshot-interval", "200",
-            "--checkpoint-interval", "200", "--eval-episodes", "1", "--run-dir", str(run_dir),
-            "--no-progress"]  # fmt: skip
+            "--update-after", "100", "--batch-size", "64", "--eval-interval", "200",
+            "--snapshot-interval", "200", "--checkpoint-interval", "200", "--eval-episodes", "1",
+            "--run-dir", str(run_dir), "--no-progress"]  # fmt: skip
     main(args)
     summary = json.loads(capsys.readouterr().out)
     assert summary["steps"] == 400 and summary["env_id"] == "Pendulum-v1"
