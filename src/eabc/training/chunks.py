@@ -50,11 +50,15 @@ FAST_COMPILE_ENV = "EABC_FAST_COMPILE"
 """Set to 1 to compile the training chunks at XLA's lowest optimisation level: a program compiles
 in about half the time and runs slower, so a run of a few hundred steps starts sooner (the test
 suite's contract checks use it). Its scan runs one step per iteration, not two: the unrolled body
-is twice the code for XLA to compile (UWAC's contract chunk: 7-9 -> 5-6 s of CPU). Results differ
-from the default build in the last bits."""
+is twice the code for XLA to compile (UWAC's contract chunk: 7-9 -> 5-6 s of CPU). Its fusions
+are emitted by XLA's older LLVM emitter rather than the MLIR fusion emitters, which take twice
+as long to compile at O0 (the contract chunks of UWAC, EABC and CQL: 23.7 -> 10.5 s of CPU
+together; BEAR's 64-64 chunk: 3.8 -> 1.7 s, its steps about 15% slower). Results differ from the
+default build in the last bits."""
 FAST_COMPILE_OPTIONS = {
     "xla_backend_optimization_level": 0,
     "xla_llvm_disable_expensive_passes": True,
+    "xla_cpu_use_fusion_emitters": False,
 }
 _STATIC = ("update", "batch_size", "length", "unroll")
 
