@@ -58,7 +58,7 @@ def quick_chunks(monkeypatch):
     """Training chunks built by $EABC_FAST_COMPILE (XLA O0, no unroll) for tests of a run's
     plumbing that train a few hundred steps of a program no other test compiles: about half the
     compile time, and such short runs barely feel the slower steps. Learning checks keep the
-    default build."""
+    default build. (It is the test's own monkeypatch: monkeypatch.undo() undoes it too.)"""
     monkeypatch.setenv(chunks.FAST_COMPILE_ENV, "1")
 
 

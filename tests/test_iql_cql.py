@@ -128,7 +128,7 @@ def test_iql_actor_learning_rate_decays_on_a_cosine_to_zero(batch):
     assert not np.allclose(states[3].value["w0"], states[2].value["w0"])  # V's rate is constant
 
 
-def test_total_steps_is_filled_from_the_run_length(tmp_path, pendulum_dataset):
+def test_total_steps_is_filled_from_the_run_length(tmp_path, pendulum_dataset, quick_chunks):
     assert trainer.resolve_agent_config("iql", "x", {}, steps=5000).total_steps == 5000
     assert trainer.resolve_agent_config("iql", "x", {"total_steps": 7}, steps=5000).total_steps == 7
     assert trainer.resolve_agent_config("iql", "x", {}).total_steps is None
