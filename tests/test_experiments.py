@@ -36,9 +36,9 @@ SMALL = dict(
 AGENT = dict(num_critics=3, confidence_level=0.5, hidden_dims=(32, 32))
 
 
-def test_seed_vmapped_training_equals_training_the_seeds_one_by_one(
-    tmp_path, pendulum_dataset, quick_chunks
-):
+def test_seed_vmapped_training_equals_training_the_seeds_one_by_one(tmp_path, pendulum_dataset):
+    # The default build: in the quickly compiled one the vmapped and the one-by-one programs
+    # round differently enough that one weight in a thousand drifts past the tolerance.
     def start(name, seed):
         config = TrainConfig(dataset="pendulum", seed=seed, **SMALL)
         return trainer.start(config, tmp_path / name, AGENT, dataset=pendulum_dataset)
