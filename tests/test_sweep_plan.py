@@ -200,7 +200,7 @@ def test_runs_an_earlier_report_holds_as_done_are_not_run_again(tmp_path, capsys
 
 
 def test_a_run_another_root_has_done_or_is_training_is_left_to_it(
-    tmp_path, capsys, pendulum_dataset, quick_chunks
+    tmp_path, capsys, pendulum_dataset, quick_chunks, quick_figures
 ):
     import os
     import socket
