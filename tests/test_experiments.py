@@ -83,7 +83,9 @@ def test_sweep_expansion_ids_and_validation():
     with pytest.raises(ValueError, match="unknown sweep key"):
         expand({"datasets": ["x"], "algos": ["bc"], "seedz": [1]})
     for name, preset in PRESETS.items():
-        if not name.startswith("study"):  # the paper's grids: 15 datasets x 5 seeds at least
+        if name == "table5":  # the six AntMaze datasets x TD3+BC, EABC x 5 seeds
+            assert len(expand(preset)) == 6 * 2 * 5, name
+        elif not name.startswith("study"):  # the paper's grids: 15 datasets x 5 seeds at least
             assert len(expand(preset)) >= 15 * 5, name
         else:  # the study's presets (tests/test_study.py): 5 or 2 datasets, 2-3 seeds
             assert len(expand(preset)) >= 3 * 3, name
