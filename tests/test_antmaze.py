@@ -587,3 +587,20 @@ def test_minari_antmaze_data_are_refused_in_one_line_that_says_what_to_use(
         load_dataset("minari:D4RL/antmaze/large-diverse-v1")
     with pytest.raises(DatasetError, match=r"^minari:eabc/antmaze/umaze-v0 needs the minari "):
         load_dataset("minari:eabc/antmaze/umaze-v0")
+
+
+def test_a_sweep_naming_minari_antmaze_data_is_refused_before_it_starts(tmp_path):
+    """The sweep checks its datasets before its first run: a Minari AntMaze id in the spec is
+    refused with the loader's line, and the root is not even made."""
+    from eabc.cli import main  # noqa: PLC0415
+
+    spec = tmp_path / "spec.yaml"
+    spec.write_text(
+        'datasets: [hopper-medium, "minari:D4RL/antmaze/umaze-v1"]\nalgos: [td3bc]\nseeds: [0]\n'
+    )
+    root = tmp_path / "root"
+    with pytest.raises(SystemExit) as error:
+        main(["sweep", str(spec), "--root", str(root), "--dry-run"])
+    line = str(error.value.code)
+    assert "\n" not in line and line.startswith("error: minari:D4RL/antmaze/umaze-v1 was recorded")
+    assert not root.exists()

@@ -175,12 +175,18 @@ GYMNASIUM_ROBOTICS_ANTMAZE = "D4RL/antmaze/"
 """Minari's namespace of the AntMaze data it re-created on Gymnasium-Robotics' ``AntMaze_*-v4``."""
 
 
+def refuse_minari_antmaze(dataset_id: str) -> None:
+    """Refuse Minari's AntMaze ids (``D4RL/antmaze/*``) by name, in one line that says why and
+    what to use instead; other ids pass."""
+    if dataset_id.startswith(GYMNASIUM_ROBOTICS_ANTMAZE):
+        raise DatasetError(_gymnasium_robotics_antmaze(dataset_id, None))
+
+
 def load_minari(dataset_id: str) -> Dataset:
     """A Minari dataset from the local Minari path (never downloads); its observations must be
     flat vectors. Minari's AntMaze data (``D4RL/antmaze/*``, or any goal-dict dataset of an
     AntMaze task) are refused: see :func:`_gymnasium_robotics_antmaze`."""
-    if dataset_id.startswith(GYMNASIUM_ROBOTICS_ANTMAZE):  # refused with or without minari
-        raise DatasetError(_gymnasium_robotics_antmaze(dataset_id, None))
+    refuse_minari_antmaze(dataset_id)  # with or without minari
     try:
         import minari  # noqa: PLC0415
     except ImportError:
