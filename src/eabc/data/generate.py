@@ -34,7 +34,9 @@ ActionFn = Callable[[np.ndarray, np.random.Generator], np.ndarray]
 
 def mujoco_names() -> list[str]:
     """The 15 MuJoCo locomotion datasets of the paper's Table 1."""
-    return [f"{env}-{kind}" for env in ("hopper", "halfcheetah", "walker2d") for kind in tasks.KINDS]
+    return [
+        f"{env}-{kind}" for env in ("hopper", "halfcheetah", "walker2d") for kind in tasks.KINDS
+    ]
 
 
 def antmaze_names() -> list[str]:

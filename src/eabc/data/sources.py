@@ -40,10 +40,7 @@ def check_source(source: str | os.PathLike) -> None:
         schema.regular_file(path)
     elif text.startswith("minari:"):
         loaders.refuse_minari_antmaze(text.removeprefix("minari:"))
-    elif not (
-        text in generate.builtin_names()
-        or ("/" in text and loaders.has_minari(text))
-    ):
+    elif not (text in generate.builtin_names() or ("/" in text and loaders.has_minari(text))):
         raise _unknown(text)
 
 

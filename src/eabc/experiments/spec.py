@@ -146,7 +146,9 @@ def load_spec(path: str | os.PathLike) -> dict[str, Any]:
     except UnicodeDecodeError:
         raise ValueError(f"{path}: not UTF-8 text; a sweep specification is a YAML file") from None
     except RecursionError:  # brackets nested thousands deep
-        raise ValueError(f"{path}: nested too deeply for a sweep specification; fix the file") from None
+        raise ValueError(
+            f"{path}: nested too deeply for a sweep specification; fix the file"
+        ) from None
     except yaml.YAMLError as error:
         where = getattr(error, "problem_mark", None)
         line = f" at line {where.line + 1}" if where is not None else ""
