@@ -486,8 +486,8 @@ ALGORITHMS = (
         Algorithm(name, display, PRESETS[name], init, update, column=column, steps_per_s=speed,
                   cost=_ensemble_cost(10), **_FAMILY)
         for name, display, column, speed in (
-            # EABC's rate over LayerNorm's measured cost per step, 1.13 (docs/speed.md)
-            ("eabc-ln", "EABC-LN", 13.5, 134.0),
+            # EABC's rate over LayerNorm's measured cost per step, 1.13-1.24 (docs/speed.md)
+            ("eabc-ln", "EABC-LN", 13.5, 122.0),
             ("eabc-quantile", "EABC-quantile", 14, 106.0),
             ("eabc-auto", "EABC-auto", 15, 110.0),
             ("eabc-robust", "EABC-robust", 16, 103.0),

@@ -263,11 +263,11 @@ def resolve(config: ReBRACConfig, dataset_name: str, steps: int | None, given: f
     return dataclasses.replace(config, **{n: b for n, b in zip(names, betas) if n in unset})
 
 
-# steps/s (batch 1024, 3 x 256 networks, hopper shapes): TD3+BC's 620 on the reference host times
-# the ratio of the two timed side by side by benchmarks/algorithms.py on a busy 2-core host (8.7
-# against 158 steps/s): 4 times the batch, one more hidden layer and the LayerNorms.
+# steps/s (batch 1024, 3 x 256 networks, hopper shapes): EABC's 151 on the reference host over
+# the ratio of the two timed on one core by benchmarks/algorithms.py (50.6 against 27.4 steps/s,
+# docs/speed.md): 4 times the batch, one more hidden layer and the LayerNorms.
 ALGORITHMS = (
     Algorithm("rebrac", "ReBRAC", PRESETS["rebrac"], init, update, resolve=resolve,
               batch_size=1024, next_actions=True, column=12.5,
-              step_metrics=CRITIC_METRICS | {"critic_bc_penalty"}, steps_per_s=34.0),
+              step_metrics=CRITIC_METRICS | {"critic_bc_penalty"}, steps_per_s=82.0),
 )  # fmt: skip
