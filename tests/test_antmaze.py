@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import json
 
 import gymnasium as gym
 import mujoco
@@ -307,6 +308,62 @@ def test_the_controller_takes_the_ant_to_the_umaze_goal(policy):
     assert np.abs(collected.actions).max() <= 1.0
     goals = collected.goals - MAZES["umaze"].goal_xy  # D4RL's goal noise, per episode
     assert (goals >= 0).all() and (goals < 1.5).all() and len(np.unique(goals)) == 20
+
+
+def test_upside_down_reads_the_torsos_quaternion():
+    from eabc.data.antmaze_collect import upside_down
+
+    def about_x(degrees):
+        half = np.radians(degrees) / 2
+        return [np.cos(half), np.sin(half), 0, 0]
+
+    obs = np.zeros((5, 29))
+    obs[:, 3:7] = [[1, 0, 0, 0], about_x(180), about_x(80), about_x(100), [0.5, 0.5, 0.5, 0.5]]
+    # upright; rolled over; tilted 80 and 100 degrees; 120 degrees about (1, 1, 1): z axis -> x axis
+    assert upside_down(obs).tolist() == [False, True, False, True, False]
+    obs[1, 3:7] = [0, 0, 1, 0]  # 180 degrees about y
+    assert upside_down(obs[1])
+
+
+def test_the_policy_alone_walks_to_goals_on_the_open_plane(policy):
+    """The card's open-plane measurement: the zoo's policy reaches goals 5-10 m away; an actor
+    that outputs nothing but the noise does not."""
+    from eabc.data import antmaze_collect
+
+    walked = antmaze_collect.open_plane(policy, 4, seed=0)
+    assert walked["success_rate"] >= 0.75 and walked["flip_rate"] <= 0.25, walked
+    assert 25 <= walked["median_steps_to_goal"] <= 200  # 5-10 m at 0.5-2 m/s, 0.1 s per step
+    still = {k: np.zeros_like(v) for k, v in policy.items()}
+    stood = antmaze_collect.open_plane(still, 2, seed=0, steps=100)
+    assert stood["success_rate"] == 0.0 and stood["median_steps_to_goal"] is None
+
+
+def test_zoo_build_antmaze_writes_the_policy_and_its_measured_card(tmp_path, monkeypatch):
+    """`eabc zoo build RUN antmaze` from a (very short) SAC run on the direction task: the actor in
+    float16, the card with the run's settings and the controller's and open plane's rates."""
+    from eabc.data import antmaze_collect, zoo
+    from eabc.training import online, zoo_build
+
+    config = online.SACTrainConfig(
+        env="eabc/AntDirection-v0", steps=600, start_steps=500, update_every=50, batch_size=64,
+        eval_interval=300, snapshot_interval=300, checkpoint_interval=300, eval_episodes=1,
+    )  # fmt: skip
+    run = online.start_sac(config, tmp_path / "run")
+    online.train_sac(run, progress=False)
+    monkeypatch.setattr(antmaze_collect, "NUM_ENVS", 2)
+    card = zoo_build.build_antmaze(
+        tmp_path / "run", tmp_path / "zoo", episodes=2, log=print, plane_episodes=2
+    )
+    assert card == json.loads((tmp_path / "zoo" / "antmaze" / zoo.CARD).read_text())
+    assert card["training_steps"] == 600 and card["direction_return"]["step"] == 600
+    assert set(card["controller"]) == {"what", "umaze", "medium", "large"}
+    assert all(card["controller"][m]["episodes"] == 2 for m in ("umaze", "medium", "large"))
+    assert card["open_plane"]["episodes"] == 2 and 0 <= card["open_plane"]["success_rate"] <= 1
+    actor, read = antmaze_collect.load_policy(tmp_path / "zoo")
+    assert read == card and all(v.dtype == np.float16 for v in np.load(
+        antmaze_collect.policy_path(tmp_path / "zoo")).values())  # fmt: skip
+    with pytest.raises(DatasetError, match="has no actor snapshot 123"):
+        zoo_build.build_antmaze(tmp_path / "run", tmp_path / "zoo", step=123)
 
 
 @pytest.fixture(scope="module")

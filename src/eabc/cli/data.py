@@ -92,7 +92,11 @@ def run_zoo(cmd: ZooBuild | ZooPack) -> None:
         return
     if cmd.env == "antmaze":
         card = zoo_build.build_antmaze(cmd.run_dir, cmd.root, cmd.step, cmd.episodes)
-        print(json.dumps({k: card[k] for k in ("training_steps", "controller")}, indent=2))
+        print(
+            json.dumps(
+                {k: card[k] for k in ("training_steps", "controller", "open_plane")}, indent=2
+            )
+        )
         return
     medium_step = None
     if (zoo.zoo_dir(cmd.root) / cmd.env / zoo.CARD).exists() and not cmd.rechoose_medium:

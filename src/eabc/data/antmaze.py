@@ -138,6 +138,11 @@ class _Ant(gym.Env):
         """``qpos[:15]`` then ``qvel[:14]``: D4RL's full-position ant observation."""
         return np.concatenate([self.data.qpos[:15], self.data.qvel[:14]])
 
+    def advance(self, action) -> np.ndarray:
+        """One 0.1 s step outside any task (no reward, no end): D4RL's 29-value state after it."""
+        self._simulate(action)
+        return self._state()
+
 
 class AntMazeEnv(_Ant):
     """The ant in one of D4RL's mazes, evaluated as D4RL's ``antmaze-*-v2``: from the start cell to

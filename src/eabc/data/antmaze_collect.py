@@ -120,6 +120,12 @@ class Collected:
         }
 
 
+def upside_down(obs: np.ndarray) -> np.ndarray:
+    """Whether the torso's z axis points below the horizon, from D4RL's observation's quaternion."""
+    quat = obs[..., 3:7]
+    return 1.0 - 2.0 * (quat[..., 1] ** 2 + quat[..., 2] ** 2) < 0.0
+
+
 def collect(
     maze_name: str,
     family: str,
@@ -159,7 +165,7 @@ def collect(
         obs = np.array(obs)
         batch_goals = np.array([env.goal for env in envs])
         planners = [mazes.WaypointPlanner(maze, g) for g in batch_goals]
-        reached, upside_down = np.zeros(num_envs, bool), np.zeros(num_envs, bool)
+        reached, flips = np.zeros(num_envs, bool), np.zeros(num_envs, bool)
         live = [k for k, i in enumerate(ids) if i < episodes]
         for t in range(steps):
             targets = [plan(o[:2], r) for plan, o, r in zip(planners, obs, rngs)]
@@ -169,8 +175,7 @@ def collect(
             actions = np.clip(actions + action_noise * noise, -1.0, 1.0).astype(np.float32)
             next_obs = np.array([env.step(a)[0] for env, a in zip(envs, actions)])
             reached |= mazes.is_success(next_obs[:, :2], batch_goals)
-            quat = next_obs[:, 3:7]
-            upside_down |= 1.0 - 2.0 * (quat[:, 1] ** 2 + quat[:, 2] ** 2) < 0.0
+            flips |= upside_down(next_obs)
             for k in live:
                 row = (first + k) * steps + t
                 obs_out[row], act_out[row], next_out[row] = obs[k], actions[k], next_obs[k]
@@ -178,9 +183,55 @@ def collect(
             bar.update(len(live))
         for k in live:
             goals[first + k], success[first + k] = batch_goals[k], reached[k]
-            flipped[first + k] = upside_down[k]
+            flipped[first + k] = flips[k]
     bar.close()
     return Collected(obs_out, act_out, next_out, goals, success, flipped)
+
+
+OPEN_PLANE_DISTANCE = (5.0, 10.0)
+"""How far the open-plane goals are from the start, metres (drawn uniformly, in a uniform direction)."""
+OPEN_PLANE_STEPS = 700
+"""The open-plane time limit: the shortest maze's (umaze, 70 s)."""
+
+
+def open_plane(
+    actor: dict[str, np.ndarray],
+    episodes: int,
+    seed: int,
+    action_noise: float = ACTION_NOISE,
+    steps: int = OPEN_PLANE_STEPS,
+    distance: tuple[float, float] = OPEN_PLANE_DISTANCE,
+) -> dict:
+    """The low-level policy alone on the open plane: how often, fed the unit vector toward a goal
+    5-10 m away (as the controller feeds it the waypoint's), it comes within 0.5 m of the goal
+    within the time limit, how often the ant flips on the way (until the goal or the limit), and
+    the median steps to the goal. Episode ``i`` draws from a generator seeded with ``(seed, i)``."""
+    act = networks.numpy_actor(actor, 1.0, gaussian=True)
+    env = antmaze.AntDirectionEnv()
+    success, flipped, taken = np.zeros(episodes, bool), np.zeros(episodes, bool), []
+    for i in range(episodes):
+        rng = np.random.default_rng([seed, i])
+        obs, _ = env.reset(seed=int(rng.integers(2**63)))
+        state = np.concatenate([env.xy, obs[:-2]])  # the direction task's view, x and y put back
+        angle = rng.uniform(0.0, 2.0 * np.pi)
+        goal = env.xy + rng.uniform(*distance) * np.array([np.cos(angle), np.sin(angle)])
+        for t in range(steps):
+            action = act(antmaze.lowlevel_observation(state, goal)[None]).astype(np.float64)[0]
+            action += action_noise * rng.standard_normal(action.shape)
+            state = env.advance(np.clip(action, -1.0, 1.0))
+            flipped[i] |= bool(upside_down(state))
+            if mazes.is_success(state[:2], goal):
+                success[i] = True
+                taken.append(t + 1)
+                break
+    return {
+        "episodes": episodes,
+        "goal_distance_m": list(distance),
+        "time_limit_steps": steps,
+        "success_rate": float(success.mean()),
+        "flip_rate": float(flipped.mean()),
+        "median_steps_to_goal": float(np.median(taken)) if taken else None,
+    }
 
 
 def make_dataset(

@@ -24,6 +24,9 @@ from eabc.training import checkpoint
 from eabc.training.checkpoint import read_config
 from eabc.training.online import SNAPSHOTS
 
+OPEN_PLANE_EPISODES = 100
+"""Episodes of the AntMaze policy's open-plane measurement (a goal 5-10 m away; about 0.1 s each)."""
+
 
 def stochastic_return(
     env_id: str, actor: dict[str, np.ndarray], episodes: int, seed: int
@@ -196,12 +199,14 @@ def build_antmaze(
     episodes: int = 30,
     seed: int = 12345,
     log: Callable[[str], None] = print,
+    plane_episodes: int = OPEN_PLANE_EPISODES,
 ) -> dict:
     """Make ``zoo/antmaze`` from an ``eabc sac`` run on ``eabc/AntDirection-v0``: its snapshot at
     ``step`` (default the latest) as ``direction.npz`` (float16), and a card with the training
     steps, the direction task's evaluation return and, per maze, how often the waypoint
     controller with these rounded weights (and the data's action noise) takes the ant from the
-    start to the evaluation goal within the time limit, and how often the ant flips."""
+    start to the evaluation goal within the time limit, and how often the ant flips; the same for
+    the policy alone on the open plane, toward goals 5-10 m away."""
     from eabc.data import antmaze, antmaze_collect, mazes  # noqa: PLC0415
 
     run_dir = Path(run_dir)
@@ -223,6 +228,8 @@ def build_antmaze(
         log(
             f"{maze}: success {controller[maze]['success_rate']:.0%}, flips {controller[maze]['flip_rate']:.0%}"
         )
+    plane = antmaze_collect.open_plane(actor, plane_episodes, seed)
+    log(f"open plane: success {plane['success_rate']:.0%}, flips {plane['flip_rate']:.0%}")
     evaluations = _evaluation_returns(run_dir)
     at = max((s for s in evaluations if s <= step), default=None)
     out = zoo.zoo_dir(root) / antmaze_collect.ZOO_ENTRY
@@ -243,6 +250,12 @@ def build_antmaze(
             "maze's time limit, action noise 0.2; success: within 0.5 of the goal at some step; "
             "flip: the torso upside down at some step",
             **controller,
+        },
+        "open_plane": {
+            "what": "the policy alone on the open plane, fed the unit vector toward a goal 5-10 m "
+            "away in a uniform direction, action noise 0.2; success: within 0.5 of the goal within "
+            "the time limit; flip: the torso upside down before the goal or the limit",
+            **plane,
         },
         "file": antmaze_collect.POLICY_FILE,
     }
