@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import signal
 import sys
+import threading
 
 import tyro
 
@@ -141,6 +143,14 @@ def parse(argv: list[str]):
     return cmd
 
 
+def exit_on_sigterm() -> None:
+    """SIGTERM (``kill PID``, a scheduler stopping a job) unwinds like Ctrl-C, so that a run lets
+    go of its lock and removes ``RUN_DIR/.lock`` (a run killed by SIGKILL leaves the file; the
+    next writer takes it over). Only the main thread may set a handler."""
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))
+
+
 def _main(argv: list[str] | None) -> None:
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] in (["--version"], ["-V"]):
@@ -151,6 +161,7 @@ def _main(argv: list[str] | None) -> None:
     except ValueError as error:  # invalid settings caught in a dataclass __post_init__
         sys.exit(f"error: {error}")
     options = getattr(cmd, "config", cmd)
+    exit_on_sigterm()
     try:
         compile_cache.enable(cache_root=getattr(options, "cache_dir", None))
         HANDLERS[type(cmd)](cmd)

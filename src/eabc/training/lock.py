@@ -1,8 +1,12 @@
-"""One writer per run directory: an OS file lock (``filelock``) plus a note of who holds it.
+"""One writer per run directory: an OS file lock plus a note of who holds it.
 
-The lock is ``RUN_DIR/.lock`` (``flock``: the kernel drops it when its process dies, so a killed
-run never leaves a stale lock); ``RUN_DIR/.lock.owner`` says which process holds it, so that a
-second writer is told whom to wait for or stop.
+The lock is ``RUN_DIR/.lock``, held with ``flock``: the kernel drops it when its process dies, so
+a killed run's ``.lock`` is taken over by the next writer without a word. Its owner removes the
+file when it lets go (while still holding it, so that no other writer can be inside); a writer
+that locked a file removed meanwhile lets go and tries again on the new one, so two writers never
+both hold "the" lock. ``RUN_DIR/.lock.owner`` says which process holds it, so that a second
+writer is told whom to wait for or stop. Where ``fcntl`` is missing (Windows) ``filelock`` holds
+the lock instead, and its file stays behind.
 """
 
 from __future__ import annotations
@@ -14,9 +18,12 @@ import sys
 import time
 from pathlib import Path
 
-import filelock
-
 from eabc import paths
+
+try:
+    import fcntl
+except ImportError:  # Windows
+    fcntl = None
 
 LOCK = ".lock"
 OWNER = ".lock.owner"
@@ -31,17 +38,20 @@ class RunLock:
 
     def __init__(self, run_dir: str | Path):
         self.run_dir = Path(run_dir)
-        self._lock = filelock.FileLock(self.run_dir / LOCK, timeout=0)
+        self._fd: int | None = None
+        self._fallback = None
+        if fcntl is None:
+            import filelock  # noqa: PLC0415
+
+            self._fallback = filelock.FileLock(self.run_dir / LOCK, timeout=0)
 
     def acquire(self) -> RunLock:
         self.run_dir.mkdir(parents=True, exist_ok=True)
-        try:
-            self._lock.acquire()
-        except filelock.Timeout:
+        if not self._take():
             raise RunLockedError(
                 f"{self.run_dir} is in use by {holder(self.run_dir)}; wait for it to finish or "
                 "stop that process, then try again"
-            ) from None
+            )
         owner = {
             "pid": os.getpid(),
             "host": socket.gethostname(),
@@ -51,14 +61,49 @@ class RunLock:
         (self.run_dir / OWNER).write_text(json.dumps(owner))
         return self
 
+    def _take(self) -> bool:
+        """Lock ``.lock`` (made if missing); False if a live process holds it."""
+        if self._fallback is not None:
+            import filelock  # noqa: PLC0415
+
+            try:
+                self._fallback.acquire()
+            except filelock.Timeout:
+                return False
+            return True
+        path = self.run_dir / LOCK
+        while True:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:  # held by a live process
+                os.close(fd)
+                return False
+            try:
+                same = os.stat(path).st_ino == os.fstat(fd).st_ino
+            except FileNotFoundError:  # its owner removed it as we locked it
+                same = False
+            if same:
+                self._fd = fd
+                return True
+            os.close(fd)  # a file no longer at the path: lock the one there now
+
     def release(self) -> None:
-        if self._lock.is_locked:
-            (self.run_dir / OWNER).unlink(missing_ok=True)
-            self._lock.release()
+        if not self.held:
+            return
+        (self.run_dir / OWNER).unlink(missing_ok=True)
+        if self._fallback is not None:
+            self._fallback.release()
+            return
+        (self.run_dir / LOCK).unlink(missing_ok=True)  # still held: no writer is inside
+        os.close(self._fd)
+        self._fd = None
 
     @property
     def held(self) -> bool:
-        return self._lock.is_locked
+        if self._fallback is not None:
+            return self._fallback.is_locked
+        return self._fd is not None
 
     def __enter__(self) -> RunLock:
         return self.acquire()
