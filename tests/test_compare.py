@@ -59,7 +59,7 @@ def test_verdicts_means_and_intervals_per_dataset():
     assert ln.loc["hopper-medium", "verdict"] == "above"
     assert ln.loc["walker2d-medium", "verdict"] == "tie"
     assert ln.loc["hopper-random", "verdict"] == "below"
-    assert ln.loc["halfcheetah-medium", "verdict"] == "-"  # no TD3+BC runs to compare with
+    assert ln.loc["halfcheetah-medium", "verdict"] == "–"  # no TD3+BC runs to compare with
     assert ln.loc["hopper-medium", "mean"] == pytest.approx(62.0)
     assert ln.loc["hopper-medium", "difference"] == pytest.approx(12.0)
     assert ln.loc["walker2d-medium", "baseline_mean"] == pytest.approx(48.0)
@@ -67,7 +67,7 @@ def test_verdicts_means_and_intervals_per_dataset():
     assert ln.loc["walker2d-medium", "low"] == pytest.approx(low)
     assert ln.loc["walker2d-medium", "high"] == pytest.approx(high)
     one = table.loc[("eabc p=1.0", "hopper-medium")]
-    assert one["verdict"] == "-" and one["low"] == one["high"] == 55.0
+    assert one["verdict"] == "–" and one["low"] == one["high"] == 55.0
     assert "td3bc" not in table.index.get_level_values("label")
 
 
@@ -114,7 +114,7 @@ def test_two_runs_get_no_verdict_even_when_both_lie_on_one_side():
     }
     row = compare.comparison_table(runs_frame(scores), "td3bc").loc[("eabc-ln", "walker2d-medium")]
     assert row["high"] < row["baseline_mean"]  # both below TD3+BC's mean ...
-    assert row["verdict"] == "-"  # ... but two seeds are too few to say "beyond seed noise"
+    assert row["verdict"] == "–"  # ... but two seeds are too few to say "beyond seed noise"
     scores[("eabc-ln", "walker2d-medium")].append(68.8)
     row = compare.comparison_table(runs_frame(scores), "td3bc").loc[("eabc-ln", "walker2d-medium")]
     assert row["verdict"] == "below"

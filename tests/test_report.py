@@ -322,8 +322,11 @@ def test_every_summary_says_what_it_rests_on_and_warns_when_that_is_thin(
 ):
     runs, evaluations = results
     text = written[1]["report.md"].read_text()
-    per_run = evaluations.groupby("run_id").size().iloc[0]
-    assert f"mean of its last {min(per_run, 10)} evaluations" in text
+    per_run = evaluations.groupby("run_id").size().iloc[0]  # 6: fewer than 10, said so
+    assert (
+        f"mean of its last 10 evaluations ({len(runs)} runs have fewer, {per_run} evaluations: "
+        "the mean of all of them)" in text
+    )
     assert f"over {len(SEEDS)} runs (seeds)" in text and "Warning" not in text
     assert "median steps/s over its training chunks" in text
 
@@ -337,7 +340,8 @@ def test_every_summary_says_what_it_rests_on_and_warns_when_that_is_thin(
     ]
     last5 = evaluations[evaluations["step"] >= sorted(evaluations["step"].unique())[-5]]
     text = report.write_report(few, last5, tmp_path / "few")["report.md"].read_text()
-    assert "mean of its last 5 evaluations" in text and "over 2-3 runs (seeds)" in text
+    assert "have fewer, 5 evaluations: the mean of all of them" in text
+    assert "over 2-3 runs (seeds)" in text
     assert "**Warning:** TD3+BC rest on fewer than 3 runs" in text
 
 
@@ -520,3 +524,50 @@ def test_a_refused_report_or_results_command_writes_nothing(tmp_path):
         assert sorted(p.name for p in root.iterdir()) == ["td3bc"], argv
     main(["results", str(root)])
     assert (root / "results.sqlite").exists()
+
+
+def test_eabc_results_shows_a_missing_value_as_a_dash(tmp_path, capsys):
+    """Before: ``NaN`` for a run without a score or a steps/s."""
+    root = tmp_path / "root"
+    _run_directory(root, "td3bc", [500.0, 700.0])
+    capsys.readouterr()
+    main(["results", str(root), "--columns", "run_id", "final_score", "final_return",
+          "q_out_of_range_step"])  # fmt: skip
+    out = capsys.readouterr().out
+    assert "NaN" not in out and "None" not in out and "nan" not in out
+    row = out.splitlines()[1].split()
+    assert row[1:] == ["–", "600.0", "–"]
+    main(["results", str(root), "--columns", "run_id", "final_score", "--csv"])
+    assert capsys.readouterr().out.splitlines()[1].endswith(",")  # CSV: empty, machine-readable
+
+
+def test_report_tables_show_a_missing_value_as_a_dash(results):
+    runs, _ = results
+    table = tables.stability_table(runs.assign(q_mean_max=np.nan))
+    text = tables.stability_to_markdown(table)
+    body = [line for line in text.splitlines()[2:]]
+    assert body and all("|  |" not in line and "nan" not in line.lower() for line in body)
+    assert all(line.split(" | ")[6] == "–" for line in body)  # max mean Q: none recorded
+    one = runs[(runs["seed"] == 0) & (runs["dataset"] == DATASETS[0])]
+    runtime = tables.runtime_to_markdown(tables.runtime_table(one))
+    assert "± 0.00" not in runtime and "± –" in runtime  # one run: no spread, not a zero one
+
+
+def test_curve_titles_say_over_how_many_seeds(results, tmp_path, monkeypatch):
+    """Before: "mean ± 1 std over seeds" above curves of one seed, which have no band."""
+    runs, evaluations = results
+    titles = []
+    monkeypatch.setattr(
+        figures, "_plot_curves", lambda stats, by, keys, path, title, **kw: titles.append(title)
+    )
+    figures.plot_learning_curves(runs, evaluations, tmp_path / "a.png")
+    figures.plot_learning_curves(runs[runs["seed"] == 0], evaluations, tmp_path / "b.png")
+    mixed = runs[(runs["seed"] == 0) | (runs["algo"] == "td3bc")]
+    figures.plot_learning_curves(mixed, evaluations, tmp_path / "c.png")
+    figures.plot_ablation(runs[runs["seed"] < 2], evaluations, "num_critics", tmp_path / "d.png")
+    assert titles == [
+        f"Learning curves: mean ± 1 std over {len(SEEDS)} seeds",
+        "Learning curves: one seed each (no band)",
+        f"Learning curves: mean ± 1 std over 1-{len(SEEDS)} seeds (one seed: no band)",
+        "Ablation of num_critics (EABC)\nmean ± 1 std over 2 seeds",
+    ]

@@ -87,6 +87,17 @@ def test_killed_and_resumed_run_ends_exactly_like_an_uninterrupted_one(
         jax.device_get(resumed.state["agent"].critic_opt),
     )
     assert resumed_summary["final_score"] == summary["final_score"]
+    # Fewer than 10 evaluations: the final score is the mean of all of them, and says so.
+    evaluations = sorted(int(s) for s in straight.state["evaluations"])
+    assert 0 < len(evaluations) < trainer.FINAL_EVALUATIONS
+    assert summary["final_score_window"] == (
+        f"all {len(evaluations)} evaluations (fewer than 10; steps {evaluations[0]:,}-"
+        f"{evaluations[-1]:,})"
+    )
+    assert summary["final_score"] == pytest.approx(
+        np.mean([straight.state["evaluations"][str(s)]["score"] for s in evaluations])
+    )
+    assert resumed_summary["final_score_window"] == summary["final_score_window"]
     steps = [
         int(line.split(",")[0])
         for line in (tmp_path / "killed/log.csv").read_text().split("\n")[1:]
@@ -311,3 +322,10 @@ def test_file_mode_follows_the_umask(tmp_path):
         assert checkpoint.file_mode() == 0o644
     finally:
         os.umask(old)
+
+
+def test_the_final_window_names_the_evaluations_a_final_score_averages():
+    assert trainer.final_window([]) == "no evaluations"
+    assert trainer.final_window([5000]) == "the only evaluation (fewer than 10; step 5,000)"
+    steps = [5000 * i for i in range(1, 13)]
+    assert trainer.final_window(steps) == "last 10 evaluations (steps 15,000-60,000)"

@@ -27,14 +27,14 @@ import pandas as pd
 
 from eabc.experiments.labels import dataset_names, display_name, labelled, ordered_labels
 from eabc.experiments.stats import stratified_bootstrap_ci
-from eabc.experiments.tables import AVERAGE, MIN_RUNS
+from eabc.experiments.tables import AVERAGE, MIN_RUNS, MISSING
 
 COLUMNS = ["runs", "mean", "low", "high", "baseline_runs", "baseline_mean", "difference", "verdict"]
 
 
 def _verdict(low: float, high: float, reference: float, runs: int) -> str:
     if runs < MIN_RUNS or not np.isfinite(reference):
-        return "-"
+        return MISSING
     if low > reference:
         return "above"
     if high < reference:
@@ -128,7 +128,7 @@ def comparison_to_markdown(
     lines = [
         f"Each algorithm against {name}: its mean final {what} over seeds with the {level} "
         f"bootstrap interval of that mean, {name}'s mean, the difference, and whether the "
-        f"interval lies above {name}'s mean, below it, or reaches it (tie; `-`: fewer than "
+        f"interval lies above {name}'s mean, below it, or reaches it (tie; `–`: fewer than "
         f"{MIN_RUNS} runs, too few for an interval to mean anything). Average: mean of the per-dataset means over the datasets both ran, with a "
         "stratified-bootstrap interval.\n",
         f"| Algorithm | Dataset | Runs | Mean [{level} CI] | {name} (runs) | Difference | Verdict |",
@@ -138,9 +138,9 @@ def comparison_to_markdown(
         reference = (
             f"{row['baseline_mean']:.1f} ({int(row['baseline_runs'])})"
             if np.isfinite(row["baseline_mean"])
-            else "-"
+            else MISSING
         )
-        difference = f"{row['difference']:+.1f}" if np.isfinite(row["difference"]) else "-"
+        difference = f"{row['difference']:+.1f}" if np.isfinite(row["difference"]) else MISSING
         dataset_cell = f"**{dataset}**" if dataset == AVERAGE else dataset
         lines.append(
             f"| {display_name(label)} | {dataset_cell} | {int(row['runs'])} | "

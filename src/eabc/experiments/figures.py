@@ -106,6 +106,20 @@ def _curve_stats(
     return stats.reset_index().fillna({"std": 0.0})
 
 
+def band_text(stats: pd.DataFrame, by: str) -> str:
+    """What the curves of ``stats`` (from :func:`_curve_stats`) show, by how many seeds each
+    rests on: ``mean ± 1 std over 3 seeds``, ``one seed each (no band)``, or with a mix
+    ``mean ± 1 std over 1-3 seeds (one seed: no band)``."""
+    seeds = stats.groupby(["dataset", by])["count"].max() if len(stats) else pd.Series([0])
+    low, high = int(seeds.min()), int(seeds.max())
+    if high <= 1:
+        return "one seed each (no band)"
+    if low == high:
+        return f"mean ± 1 std over {high} seeds"
+    also = " (one seed: no band)" if low == 1 else ""
+    return f"mean ± 1 std over {low}-{high} seeds{also}"
+
+
 def _plot_curves(
     stats: pd.DataFrame,
     by: str,
@@ -162,11 +176,12 @@ def plot_learning_curves(
     """Figure 1: per dataset, the score (or ``curve``: ``return_mean``) of each algorithm label
     over gradient steps.
 
-    The line is the mean over seeds, the band +-1 std over seeds (ddof 1; none with one seed).
+    The line is the mean over seeds, the band +-1 std over seeds (ddof 1; none with one seed);
+    the title says over how many (:func:`band_text`).
     """
     runs = labelled(runs)
     stats = _curve_stats(runs, evaluations, "label", curve)
-    title = "Learning curves: mean ± 1 std over seeds"
+    title = f"Learning curves: {band_text(stats, 'label')}"
     return _plot_curves(
         stats, "label", ordered_labels(runs), path, title, names=display_name, ylabel=ylabel
     )
@@ -274,7 +289,7 @@ def plot_ablation(
     """Figures 2-4: per dataset, learning curves of ``algo`` for each value of ``parameter``.
 
     ``parameter`` is ``num_critics``, ``confidence_level`` or ``pessimism``; the other two are held
-    fixed (see :func:`ablation_values`). Mean +- 1 std over seeds.
+    fixed (see :func:`ablation_values`). Mean +- 1 std over seeds, the title says how many.
     """
     sub = _ablation_runs(runs, parameter, algo)
     if sub.empty:
@@ -283,7 +298,7 @@ def plot_ablation(
     sub = sub.assign(key=[_value_label(parameter, v, algo) for v in sub["value"]])
     stats = _curve_stats(sub, evaluations, "key", curve)
     keys = [_value_label(parameter, v, algo) for v in values]
-    title = f"Ablation of {parameter} ({display_name(algo)})"
+    title = f"Ablation of {parameter} ({display_name(algo)})\n{band_text(stats, 'key')}"
     return _plot_curves(stats, "key", keys, path, title, ylabel=ylabel)
 
 

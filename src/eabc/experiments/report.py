@@ -77,13 +77,16 @@ def evidence(
 
     scored = evaluations[np.isfinite(pd.to_numeric(evaluations[metric.curve], errors="coerce"))]
     counts = scored.groupby("run_id").size().reindex(runs["run_id"], fill_value=0)
-    used = [min(int(n), FINAL_EVALUATIONS) for n in counts if n > 0] or [0]
+    short = [int(n) for n in counts if 0 < n < FINAL_EVALUATIONS]
     cells = table.xs("runs", axis=1, level="stat").drop(index=AVERAGE)
     per_cell = [int(n) for n in cells.to_numpy().ravel() if n > 0] or [0]
-    return (
-        f"each run's {metric.name} is the mean of its last {_span(used, 'evaluation')} (at most "
-        f"{FINAL_EVALUATIONS}); each cell's mean ± std is over {_span(per_cell, 'run')} (seeds)"
-    )
+    window = f"each run's {metric.name} is the mean of its last {FINAL_EVALUATIONS} evaluations"
+    if short:
+        many = "run has" if len(short) == 1 else "runs have"
+        window += (
+            f" ({len(short)} {many} fewer, {_span(short, 'evaluation')}: the mean of all of them)"
+        )
+    return f"{window}; each cell's mean ± std is over {_span(per_cell, 'run')} (seeds)"
 
 
 def thin_evidence(table: pd.DataFrame) -> list[str]:

@@ -54,6 +54,9 @@ class Metric:
     """What a table caption says the numbers are."""
 
 
+MISSING = "–"
+"""How every table shows a value that is missing (NaN, None): an en dash."""
+
 SCORE = Metric("final_score", "score", "score", "D4RL-normalised score")
 RETURN = Metric(
     "final_return",
@@ -139,7 +142,7 @@ def to_markdown(table: pd.DataFrame) -> str:
         "| " + " | ".join(["Dataset", *(escape(display_name(c)) for c in _columns(table))]) + " |",
         "|" + "---|" + ":---:|" * len(_columns(table)),
     ]
-    for name, cells in _cells(table, "±", "–"):
+    for name, cells in _cells(table, "±", MISSING):
         texts = [f"**{t}**" if best else t for t, best in cells]
         lines.append("| " + " | ".join([escape(name), *texts]) + " |")
     return "\n".join(lines) + "\n"
@@ -206,10 +209,8 @@ def runtime_table(runs: pd.DataFrame) -> pd.DataFrame:
 def runtime_to_markdown(table: pd.DataFrame) -> str:
     lines = ["| Algorithm | Runs | Hours per 1M steps |", "|---|---:|:---:|"]
     for label, row in table.iterrows():
-        std = 0.0 if math.isnan(row["std"]) else row["std"]
-        lines.append(
-            f"| {display_name(label)} | {int(row['runs'])} | {row['mean']:.2f} ± {std:.2f} |"
-        )
+        std = MISSING if math.isnan(row["std"]) else f"{row['std']:.2f}"  # one run: no spread
+        lines.append(f"| {display_name(label)} | {int(row['runs'])} | {row['mean']:.2f} ± {std} |")
     return "\n".join(lines) + "\n"
 
 
@@ -324,7 +325,7 @@ def stability_table(runs: pd.DataFrame, metric: str = "final_score") -> pd.DataF
 
 def stability_to_markdown(table: pd.DataFrame, name: str = "score") -> str:
     def fmt(value, pattern):
-        return "" if is_missing(value) or not np.isfinite(value) else pattern.format(value)
+        return MISSING if is_missing(value) or not np.isfinite(value) else pattern.format(value)
 
     lines = [
         f"| Dataset | Algorithm | runs | {name} | out of range | first step out | max mean Q | "
@@ -425,7 +426,7 @@ def failure_to_markdown(
     table: pd.DataFrame, published: str, fix: str, baseline: str | None, name: str = "score"
 ) -> str:
     def fmt(value, pattern):
-        return "" if is_missing(value) or not np.isfinite(value) else pattern.format(value)
+        return MISSING if is_missing(value) or not np.isfinite(value) else pattern.format(value)
 
     side_columns = [name, "out of range", "first step out", "max mean Q", "spread at pi",
                     "spread ratio", "BC fraction"]  # fmt: skip

@@ -234,8 +234,23 @@ def _plot(run: Run) -> None:
     plot_curve(evaluations, run.run_dir / CURVE, f"{run.config.algo} on {run.dataset.name}")
 
 
+def final_window(steps: list[int]) -> str:
+    """What a final score averages, from the steps of its evaluations: ``last 10 evaluations
+    (steps 955,000-1,000,000)``, or with fewer than :data:`FINAL_EVALUATIONS` ``all 3
+    evaluations (fewer than 10; steps 2,000-6,000)``."""
+    last = steps[-FINAL_EVALUATIONS:]
+    if not last:
+        return "no evaluations"
+    span = f"step {last[0]:,}" if len(last) == 1 else f"steps {last[0]:,}-{last[-1]:,}"
+    if len(steps) >= FINAL_EVALUATIONS:
+        return f"last {FINAL_EVALUATIONS} evaluations ({span})"
+    which = "the only evaluation" if len(steps) == 1 else f"all {len(steps)} evaluations"
+    return f"{which} (fewer than {FINAL_EVALUATIONS}; {span})"
+
+
 def summarize_run(run: Run) -> dict[str, Any]:
-    evaluations = [run.state["evaluations"][s] for s in sorted(run.state["evaluations"], key=int)]
+    steps = sorted(run.state["evaluations"], key=int)
+    evaluations = [run.state["evaluations"][s] for s in steps]
     last = evaluations[-FINAL_EVALUATIONS:]
     summary: dict[str, Any] = {
         "algo": run.config.algo,
@@ -250,4 +265,5 @@ def summarize_run(run: Run) -> dict[str, Any]:
         summary["final_return"] = float(np.mean([e["return_mean"] for e in last]))
         if "score" in last[0]:
             summary["final_score"] = float(np.mean([e["score"] for e in last]))
+        summary["final_score_window"] = final_window([int(s) for s in steps])
     return summary
