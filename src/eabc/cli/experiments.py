@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import sys
 import time
 from pathlib import Path
@@ -294,7 +295,19 @@ def run_results(cmd: Results) -> None:
     if cmd.csv:
         print(table.to_csv(index=False), end="")
     else:
-        print(table.to_string(index=False, float_format=lambda x: f"{x:.1f}"))
+        print(shown(table).to_string(index=False))
+
+
+def shown(table):
+    """``table`` as text cells: numbers with one decimal, a missing value (NaN, None) as "–"."""
+    import pandas as pd  # noqa: PLC0415
+
+    def cell(value) -> str:
+        if value is None or value is pd.NA or (isinstance(value, float) and math.isnan(value)):
+            return "–"
+        return f"{value:.1f}" if isinstance(value, float) else str(value)
+
+    return table.map(cell)
 
 
 def run_report(cmd: Report) -> None:
