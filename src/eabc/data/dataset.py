@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import math
 from typing import Any
 
 import numpy as np
@@ -86,6 +87,9 @@ class Dataset:
                 f"{self.name}: next_observations have dim {self.next_observations.shape[1]} but "
                 f"observations have dim {self.observations.shape[1]}"
             )
+        problem = reference_scores_problem(self.ref_min_score, self.ref_max_score)
+        if problem:
+            raise DatasetError(f"{self.name}: {problem}")
         for key in ("observations", "actions", "rewards", "next_observations"):
             values = getattr(self, key)
             bad = ~np.isfinite(values)
@@ -139,6 +143,29 @@ class Dataset:
         if self.ref_min_score is None or self.ref_max_score is None:
             return None
         return tasks.normalized_score(episode_return, self.ref_min_score, self.ref_max_score)
+
+
+def reference_scores_problem(low: float | None, high: float | None) -> str | None:
+    """Why reference scores (a random and an expert policy's returns) cannot normalise a score,
+    or None: both must be finite and the random one below the expert one. Reversed, near-random
+    data scored near 100; equal, every score divided by zero. One of them alone is a run's
+    problem, not the data's (:func:`eabc.training.run.start` refuses it: returns only need
+    neither)."""
+    if low is None or high is None:
+        return None
+    if not (math.isfinite(low) and math.isfinite(high)):
+        problem = "are not both finite numbers"
+    elif low >= high:
+        problem = "equal" if low == high else "in the wrong order (random above expert)"
+        problem = f"are {problem}"
+    else:
+        return None
+    return (
+        f"its reference scores ref_min_score={low} and ref_max_score={high} {problem}; the "
+        "normalised score 100 (return - ref_min_score) / (ref_max_score - ref_min_score) needs "
+        "a random policy's return below an expert's: set them so (swap them if they were "
+        "exchanged), or remove both to report returns only"
+    )
 
 
 def _flags(values: np.ndarray, key: str, name: str) -> np.ndarray:

@@ -113,6 +113,17 @@ def from_arrays(arrays: dict[str, np.ndarray], attrs: dict, default_name: str) -
     arrays = dict(arrays)
     arrays.setdefault("timeouts", np.zeros(n, bool))
     if "next_observations" not in arrays:
+        if n == 1:  # s' is the next row's observation: one row has none
+            raise DatasetError(
+                f"{name}: holds one row, and without next_observations a transition's next "
+                "observation is the next row's: store next_observations, or save more rows"
+            )
+        if np.asarray(arrays["timeouts"], bool)[:-1].all():
+            raise DatasetError(
+                f"{name}: all {n} rows are timeouts, so no transition has a next observation (a "
+                "timeout step's would be the next episode's first, and is dropped): store "
+                "next_observations, or mark only each episode's last step as a timeout"
+            )
         arrays = _with_next_observations(arrays)
     task = tasks.parse_task(name)
     env = tasks.env_info(task)

@@ -1,9 +1,10 @@
 """Checkpoints as msgpack (never pickle), written atomically: a temporary file, then a rename.
 
 A checkpoint file is the msgpack payload followed by a 40-byte trailer, ``EABCSUM1`` and the
-payload's SHA-256, checked on every read. Files from before the trailer (version 0) still load:
-they are checked for structure and for NaN/inf weights (the traces of corruption that can be seen
-without a checksum).
+payload's SHA-256, checked on every read. Files from before the trailer (version 0) still load.
+Every file, with a checksum or without, is checked for NaN/inf values (:func:`check_values`):
+a checksum tells a damaged file from an intact one, not an edited one from the original, since
+whoever edits the payload can recompute it.
 
 A training run's payload records its agent state's layout (``state_layout``, the algorithm's
 :attr:`~eabc.agents.contract.Algorithm.state_layout`; absent in files from before it: layout 1),
@@ -104,14 +105,8 @@ def load_raw(run_dir: Path) -> dict[str, Any]:
     path = Path(run_dir) / CHECKPOINT
     if not path.exists():
         raise FileNotFoundError(f"no checkpoint in {run_dir}; the run has not saved one yet")
-    raw, checked = _read(path)
-    if not checked:
-        bad = [name for name, leaf in _leaves(raw.get("agent", {})) if not _finite(leaf)]
-        if bad:
-            raise CheckpointError(
-                f"{path} holds NaN/inf in {bad[0]} (an old checkpoint without a checksum, likely "
-                f"corrupt); {_REDO}"
-            )
+    raw, _ = _read(path)
+    check_values({k: raw.get(k) for k in ("agent", "normalizer")}, path)
     return raw
 
 
@@ -121,7 +116,30 @@ def read_tree(path: Path) -> dict[str, Any]:
     raw, checked = _read(Path(path))
     if not checked:
         raise CheckpointError(f"{path} has no checksum: it is not a file this package wrote")
+    check_values(raw, Path(path))
     return raw
+
+
+INFINITE = frozenset({"reward_min", "reward_max", "halt_threshold"})
+"""State entries that may hold +-inf: running bounds that start infinite before any data is seen
+(EABC's adaptive controllers' reward range) and MOPO's and MOReL's halting threshold, infinite
+until their model is fitted. Every other float, and NaN anywhere, is a trace of corruption."""
+
+
+def check_values(tree: Any, path: Path) -> None:
+    """Refuse NaN in any float of ``tree``, and +-inf anywhere but :data:`INFINITE`: training
+    never writes them (a run whose losses turn NaN/inf stops before it checkpoints), so they are
+    corruption or an edit, whatever the checksum says (a checksum can be recomputed)."""
+    for name, leaf in _leaves(tree):
+        array = np.asarray(leaf)
+        if array.dtype.kind not in "fc":
+            continue
+        allowed = name.rsplit("/", 1)[-1] in INFINITE
+        if np.isnan(array).any() or (not allowed and not np.isfinite(array).all()):
+            raise CheckpointError(
+                f"{path} holds NaN/inf in {name}, which training never writes: the file is "
+                f"corrupt or was edited; {_REDO}"
+            )
 
 
 def _read(path: Path) -> tuple[dict[str, Any], bool]:
@@ -228,11 +246,6 @@ def _leaves(tree: Any, prefix: str = ""):
             yield from _leaves(value, f"{prefix}/{key}".lstrip("/"))
     else:
         yield prefix, tree
-
-
-def _finite(leaf: Any) -> bool:
-    array = np.asarray(leaf)
-    return array.dtype.kind not in "fc" or bool(np.isfinite(array).all())
 
 
 def save_json(path: Path, data: dict) -> None:

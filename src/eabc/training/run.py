@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import os
 import shutil
 import sys
@@ -30,7 +29,7 @@ import numpy as np
 from eabc import paths, pytree, ranges
 from eabc.agents import ALGORITHMS, Algorithm, get_algorithm, validation
 from eabc.data import generate, tasks
-from eabc.data.dataset import Dataset, DatasetError, Normalizer
+from eabc.data.dataset import Dataset, DatasetError, Normalizer, reference_scores_problem
 from eabc.data.sources import load_dataset
 from eabc.evaluation import Evaluator, check_spaces, make_env
 from eabc.training import checkpoint, identity, logger, run_config
@@ -483,6 +482,8 @@ def _build(run_dir, config, agent_config, dataset, state, saved=None) -> Run:
     )
     check_spaces(evaluator.env, dataset)
     max_action = float(evaluator.env.action_space.high[0])
+    if saved is not None:  # what the export and load_policy will scale the actions by
+        run_config.check_max_action(saved, run_dir / CONFIG, evaluator.env)
     algorithm = get_algorithm(config.algo)
     normalizer = Normalizer.fit(dataset.observations)
     init_key, loop_key = _keys(config.seed)
@@ -522,15 +523,9 @@ def _check_reference_scores(config: TrainConfig, dataset: Dataset) -> None:
             "(a random and an expert policy's return): add the other, or remove both to report "
             "returns only"
         )
-    if low is None or high is None:
-        return
-    if not (math.isfinite(low) and math.isfinite(high)) or low == high:
-        raise DatasetError(
-            f"{config.dataset}: its reference scores ref_min_score={low} and ref_max_score={high} "
-            "make the normalised score 100 (return - min) / (max - min) undefined; set them to "
-            "two different finite returns (a random and an expert policy's) in the dataset file, "
-            "or remove both to report returns only"
-        )
+    problem = reference_scores_problem(low, high)  # a Dataset refuses them too: any source
+    if problem:
+        raise DatasetError(f"{config.dataset}: {problem}")
 
 
 def read_checkpoint(run_dir: str | Path) -> tuple[dict, Algorithm, dict]:
@@ -545,6 +540,13 @@ def read_checkpoint(run_dir: str | Path) -> tuple[dict, Algorithm, dict]:
             f"{run_dir / CONFIG}: max_action is missing (every eabc writes it); put back the "
             "evaluation environment's action bound (its action_space.high), e.g. 1.0"
         )
+    env_id = config["train"].get("env") or config["dataset"].get("env_id")
+    if env_id:  # a run that names its environment: max_action must be that environment's
+        env = make_env(env_id)
+        try:
+            run_config.check_max_action(config, run_dir / CONFIG, env)
+        finally:
+            env.close()
     algorithm = get_algorithm(config["train"]["algo"])
     raw = identity.checked(checkpoint.load_raw(run_dir), run_dir, config)
     raw = checkpoint.check_layout(raw, run_dir, algorithm.name, algorithm.state_layout)

@@ -9,7 +9,8 @@ where a number belongs, a list where a mapping belongs) is refused in one line t
 the key and what to do (:class:`ConfigError`), rather than raising ``KeyError`` deep in a reader.
 
 Files of earlier versions keep loading: every version wrote ``train`` with all of TrainConfig's
-fields, ``agent``, ``dataset`` and ``max_action``; ``run_id`` (runs from before run ids) and
+fields, ``agent``, ``dataset`` and ``max_action`` (the first three are required: without them the
+file does not say how the run was made); ``run_id`` (runs from before run ids) and
 ``dataset.fingerprint`` (runs from before the data check) may be absent, and agent settings a later
 version added take the preset's value (those it removed are ignored), as resume always did. Of the
 train settings only what identifies a run (``dataset``, ``algo``, ``seed``) and its length
@@ -22,14 +23,16 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 import typing
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import pydantic
 
 from eabc import ranges
 from eabc.agents import ALGORITHMS, validation
+from eabc.data.dataset import reference_scores_problem
 from eabc.training.checkpoint import CONFIG, read_config
 
 REQUIRED = ("dataset", "algo", "seed", "steps")
@@ -39,6 +42,10 @@ _REDO = "or restore config.json from a copy"
 
 class ConfigError(ValueError):
     """A config.json this package cannot use; the message names the file, the key and what to do."""
+
+
+FiniteNumber = Annotated[float, pydantic.Field(allow_inf_nan=False)]
+"""A finite number (JSON lets NaN and Infinity through as numbers)."""
 
 
 class _Strict(pydantic.BaseModel):
@@ -58,10 +65,17 @@ class DatasetSection(_Strict):
     """Its content's SHA-256 (absent in runs from before the check)."""
     env_id: str | None = None
     """The Gymnasium id the run evaluates in."""
-    ref_min_score: float | None = None
+    ref_min_score: FiniteNumber | None = None
     """The return that scores 0 (None: the data has no reference scores)."""
-    ref_max_score: float | None = None
-    """The return that scores 100."""
+    ref_max_score: FiniteNumber | None = None
+    """The return that scores 100: above ref_min_score, as the data's own are."""
+
+    @pydantic.model_validator(mode="after")
+    def _ordered(self) -> DatasetSection:
+        problem = reference_scores_problem(self.ref_min_score, self.ref_max_score)
+        if problem:
+            raise ValueError(problem)
+        return self
 
 
 class RunConfigFile(_Strict):
@@ -71,12 +85,26 @@ class RunConfigFile(_Strict):
     """The run's random id (:mod:`eabc.training.identity`; absent in runs from before ids)."""
     train: dict[str, Any]
     """TrainConfig's fields (:func:`train_model` checks them)."""
-    agent: dict[str, Any] = {}
+    agent: dict[str, Any]
     """The algorithm's resolved settings (checked by the algorithm's own validation)."""
-    dataset: DatasetSection = DatasetSection()
+    dataset: DatasetSection
     """What the run was trained on."""
-    max_action: ranges.PositiveNumber | None = None
-    """The environment's action bound (the policy's output scale)."""
+    max_action: Annotated[float, pydantic.Field(gt=0, allow_inf_nan=False)] | None = None
+    """The environment's action bound (the policy's output scale): a finite number > 0, the
+    evaluation environment's own (:func:`check_max_action`)."""
+
+
+def check_max_action(config: dict, path: Path, env) -> None:
+    """Refuse a recorded ``max_action`` that is not ``env``'s action bound (what eabc wrote):
+    the policy's actions are ``max_action * tanh(...)``, so another value would act outside
+    the environment's bounds, or within a part of them only."""
+    recorded = config.get("max_action")
+    bound = float(env.action_space.high[0])
+    if recorded is not None and not math.isclose(recorded, bound, rel_tol=1e-6):
+        raise ConfigError(
+            f"{path}: max_action is {recorded}, but {env.spec.id}'s actions are bounded by "
+            f"{bound} (its action_space.high); put back {bound} {_REDO}"
+        )
 
 
 def _train_config() -> type:
