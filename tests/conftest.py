@@ -21,7 +21,7 @@ PENDULUM_CONTROLLER_RETURN = -130.0
 
 
 # d3rlpy pins gymnasium 1.0.0 and brings PyTorch, so it lives in an environment of its own
-# (`pip install -e ".[d3rlpy,test]"`, made by .ci/run), not in `dev`: its interop tests are collected
+# (`pip install -e ".[d3rlpy,minari,test]"`, made by .ci/run), not in `dev`: its interop tests are collected
 # where d3rlpy is installed, and the header says so where it is not.
 HAVE_D3RLPY = importlib.util.find_spec("d3rlpy") is not None
 collect_ignore = [] if HAVE_D3RLPY else ["test_d3rlpy.py"]
@@ -31,7 +31,7 @@ def pytest_terminal_summary(terminalreporter):
     if not HAVE_D3RLPY:
         terminalreporter.write_line(
             "d3rlpy interop (tests/test_d3rlpy.py) not collected: d3rlpy is not installed here; "
-            "it runs in an environment of its own (pip install -e '.[d3rlpy,test]')"
+            "it runs in an environment of its own (pip install -e '.[d3rlpy,minari,test]')"
         )
 
 
@@ -41,6 +41,9 @@ def pytest_configure(config):
     config.xla_cache = tempfile.mkdtemp(prefix="eabc-test-xla-")
     os.environ["EABC_COMPILE_CACHE"] = config.xla_cache
     compile_cache.enable(config.xla_cache)
+    # Time estimates at the reference host's figures, not at this host's load of the moment
+    # (tests/test_timing.py measures the probe itself).
+    os.environ.setdefault("EABC_HOST_SPEED", "1")
 
 
 def pytest_unconfigure(config):

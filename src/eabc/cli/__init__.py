@@ -1,7 +1,7 @@
 """The ``eabc`` command line, generated from typed dataclasses (``eabc --help``, ``eabc train --help``).
 
 One module per group of commands: :mod:`~eabc.cli.train` (train, evaluate, sac, export-policy),
-:mod:`~eabc.cli.experiments` (sweep, results, report), :mod:`~eabc.cli.data` (data, zoo);
+:mod:`~eabc.cli.experiments` (sweep, results, report), :mod:`~eabc.cli.study` (study), :mod:`~eabc.cli.data` (data, zoo);
 :mod:`~eabc.cli.options` holds what they share. :func:`main` dispatches.
 """
 
@@ -12,6 +12,7 @@ import os
 import signal
 import sys
 import threading
+from typing import Annotated, Any, Union
 
 import tyro
 
@@ -37,12 +38,18 @@ from eabc.cli.experiments import (
     sweep_spec,
 )
 from eabc.cli.options import (
+    RESUME_OPTIONS,
+    Interrupted,
     _checked,
     check_agent,
     check_flags,
     one_line_errors,
     parse_settings,
+    quiet_unset_defaults,
+    refuse_ignored_with_resume,
+    refuse_repeated_flags,
 )
+from eabc.cli.study import Study, run_study
 from eabc.cli.train import (
     Evaluate,
     ExportPolicy,
@@ -58,7 +65,7 @@ from eabc.training.trainer import TrainConfig
 
 __all__ = [
     "SWEEP_PRESETS", "DataExport", "DataInfo", "DataList", "DataMake", "Evaluate", "ExportPolicy",
-    "Report", "Results", "Sac", "Sweep", "Train", "ZooBuild", "ZooPack", "main", "parse", "parse_settings",
+    "Report", "Results", "Sac", "Study", "Sweep", "Train", "ZooBuild", "ZooPack", "main", "parse", "parse_settings",
     "sac_agent_config", "sweep_spec",
 ]  # fmt: skip
 
@@ -66,12 +73,13 @@ __all__ = [
 def _export_policy(cmd: ExportPolicy) -> None:
     from eabc import deploy, paths  # noqa: PLC0415
 
-    paths.check_directory(os.path.dirname(cmd.onnx) or ".", f"--onnx {cmd.onnx}: its folder")
+    # Never over the run's own files, nor over what is not a regular file (/dev/null, a folder).
+    paths.check_output_file(cmd.onnx, "--onnx", protected=cmd.run_dir, ours=deploy.PRODUCER_MARK)
     print(deploy.export_onnx(cmd.run_dir, cmd.onnx))
 
 
 HANDLERS = {
-    Train: run_train, Evaluate: run_evaluate, Sac: run_sac, Sweep: run_sweep,
+    Train: run_train, Evaluate: run_evaluate, Sac: run_sac, Sweep: run_sweep, Study: run_study,
     Results: run_results, Report: run_report, ExportPolicy: _export_policy,
     ZooBuild: run_zoo, ZooPack: run_zoo,
     DataMake: run_data, DataInfo: run_data, DataList: run_data, DataExport: run_data,
@@ -81,13 +89,20 @@ HANDLERS = {
 
 def main(argv: list[str] | None = None) -> None:
     """The ``eabc`` command; output piped into a reader that stops early (``eabc --help | head``)
-    ends it quietly."""
+    ends it quietly, and Ctrl-C in one line (exit code 130) that says how to continue."""
     try:
         _main(argv)
     except BrokenPipeError:
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())  # Python's advice: no second error at exit
         sys.exit(1)
+    except KeyboardInterrupt as interrupt:  # Ctrl-C: one line, no traceback, a shell's 130
+        if isinstance(interrupt, Interrupted):
+            message = str(interrupt)
+        else:  # a signal raised as an interrupt names itself (SIGTERM)
+            message = "interrupted" + (f" ({interrupt.args[0]})" if interrupt.args else "")
+        print(message, file=sys.stderr, flush=True)
+        sys.exit(130)
 
 
 COMMANDS: dict[str, type] = {
@@ -95,6 +110,7 @@ COMMANDS: dict[str, type] = {
     "evaluate": Evaluate,
     "sac": Sac,
     "sweep": Sweep,
+    "study": Study,
     "results": Results,
     "report": Report,
     "export-policy": ExportPolicy,
@@ -115,6 +131,25 @@ GROUPS: dict[str, tuple[dict[str, type], str]] = {
 }
 
 
+def _subcommands(commands: dict[str, type]):
+    """``commands`` as tyro's subcommands, each described by its first docstring line, and a
+    group (``data``, ``zoo``) by its own text, not by the command class standing for it."""
+    groups = {name: text for name, (_, text) in GROUPS.items()} if commands is COMMANDS else {}
+    return Union[
+        tuple(
+            Annotated[
+                Any,
+                tyro.conf.subcommand(name=name, constructor=cls, description=groups.get(name)),
+            ]
+            for name, cls in commands.items()
+        )
+    ]
+
+
+for _command in {*COMMANDS.values(), *(c for group, _ in GROUPS.values() for c in group.values())}:
+    quiet_unset_defaults(_command)
+
+
 def parse(argv: list[str]):
     """The command ``eabc ARGV`` names, parsed and checked as ``main`` does before running it: a
     bad flag or value raises ``ValueError`` in one line naming the flag (``--help`` exits)."""
@@ -126,9 +161,10 @@ def parse(argv: list[str]):
         prog = f"eabc {argv[0]}"
         argv = argv[1:]
     command = f"{prog} {argv[0]}" if argv[:1] and argv[0] in commands else prog
+    refuse_repeated_flags(argv)  # the parser would keep the last value without a word
     with one_line_errors(argv, command):  # a bad value: one error line, not tyro's box
-        cmd = tyro.extras.subcommand_cli_from_dict(
-            commands,
+        cmd = tyro.cli(
+            _subcommands(commands),
             args=argv,
             prog=prog,  # not the interpreter's path to the entry point
             description=description,
@@ -137,6 +173,9 @@ def parse(argv: list[str]):
     if isinstance(cmd, Train | Sac):  # checked here, so that errors name the flags
         config_class = TrainConfig if isinstance(cmd, Train) else SACTrainConfig
         cmd = dataclasses.replace(cmd, config=_checked(cmd.config, config_class))
+    if isinstance(cmd, Train | Sac) and cmd.resume:  # no option resume would silently ignore
+        allowed = RESUME_OPTIONS if isinstance(cmd, Train) else {"resume", "progress", "no-progress"}
+        refuse_ignored_with_resume(argv, allowed)
     if isinstance(cmd, Train) and not cmd.resume:  # the algorithm's settings, named as flags
         check_agent(cmd.config, cmd.agent, cmd.set)
     check_flags(cmd)  # the other numbers: ranges declared on the command's fields
@@ -170,4 +209,6 @@ def _main(argv: list[str] | None) -> None:
     except BrokenPipeError:  # the reader stopped early: main ends quietly
         raise
     except OSError as error:  # e.g. a directory where a file should be, no permission
-        sys.exit(f"error: {error.filename or ''}: {error.strerror or error}; check that path")
+        if not error.filename:  # say what failed rather than an empty name
+            sys.exit(f"error: {error.strerror or error}")
+        sys.exit(f"error: {error.filename}: {error.strerror or error}; check that path")

@@ -136,6 +136,7 @@ class DataExport:
 
 def run_data(cmd: DataMake | DataInfo | DataList | DataExport) -> None:
     from eabc.data import generate, loaders, sources  # noqa: PLC0415
+    from eabc.data.dataset import DatasetError  # noqa: PLC0415
     from eabc.training.run import check_cache_dir  # noqa: PLC0415
 
     if cmd.cache_dir is not None:  # checked before minutes of making a dataset, not after
@@ -159,7 +160,15 @@ def run_data(cmd: DataMake | DataInfo | DataList | DataExport) -> None:
             if not path.exists():
                 print(f"{name:26s} {'-':>11s} {'-':>8s} {'-':>17s} {'-':>6s} {level}  (not made)")
                 continue
-            info = generate.describe(path)
+            try:  # one unreadable file is one row, not the end of the list
+                info = generate.describe(path)
+            except (DatasetError, OSError) as error:
+                why = " ".join(str(error).split())
+                print(
+                    f"{name:26s} {'-':>11s} {'-':>8s} {'-':>17s} {'-':>6s} {level}  {path} "
+                    f"(unreadable: {why[:160]}; eabc data make {name} --force)"
+                )
+                continue
             spread = f"{info['return_mean']:.0f} +- {info['return_std']:.0f}"
             score = _number(info["normalized_return"], 6, ".1f")
             episodes = info["episodes"]
@@ -178,6 +187,8 @@ def run_data(cmd: DataMake | DataInfo | DataList | DataExport) -> None:
         dataset = sources.load_dataset(cmd.name, cmd.cache_dir)
         print(d3rlpy_export.export_d3rlpy(dataset, cmd.d3rlpy, overwrite=cmd.force))
     elif isinstance(cmd, DataExport):
+        if cmd.dataset_id is not None:  # before a dataset is made or anything written
+            loaders.check_export_target(cmd.dataset_id, cmd.force)
         dataset = sources.load_dataset(cmd.name, cmd.cache_dir)
         dataset_id = cmd.dataset_id or loaders.minari_id(dataset.name)
         print(loaders.export_minari(dataset, dataset_id, overwrite=cmd.force))

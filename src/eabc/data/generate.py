@@ -78,13 +78,16 @@ def is_current(path: str | os.PathLike, name: str, zoo_root=None) -> bool:
     from eabc.data import zoo  # noqa: PLC0415
 
     path = Path(path)
-    if not path.exists():
+    if not path.is_file():  # missing, or a directory or FIFO in its place: made again
         return False
     env_name, kind = tasks.parse_task(name)
     if kind == "random":
         return True
-    with h5py.File(path, "r") as f:
-        metadata = json.loads(f.attrs.get("metadata", "{}"))
+    try:
+        with h5py.File(path, "r") as f:
+            metadata = json.loads(f.attrs.get("metadata", "{}"))
+    except (OSError, ValueError, TypeError):  # unreadable (junk, truncated): made again
+        return False
     if metadata.get("version") != FORMAT_VERSION:
         return False
     try:
@@ -378,8 +381,16 @@ def describe(path: str | os.PathLike) -> dict:
     """:func:`describe_dataset` of a cached file, remembered in a sidecar ``.info.json``."""
     path = Path(path)
     sidecar = path.with_suffix(".info.json")
-    if sidecar.exists() and sidecar.stat().st_mtime >= path.stat().st_mtime:
-        return json.loads(sidecar.read_text())
+    if sidecar.is_file() and sidecar.stat().st_mtime >= path.stat().st_mtime:
+        try:  # a damaged sidecar is only a lost shortcut: described again below
+            info = json.loads(sidecar.read_text())
+            if isinstance(info, dict):
+                return info
+        except (OSError, ValueError):
+            pass
     info = describe_dataset(load_file(path))
-    sidecar.write_text(json.dumps(info, indent=2))
+    try:
+        sidecar.write_text(json.dumps(info, indent=2))
+    except OSError:  # a read-only cache: described every time
+        pass
     return info

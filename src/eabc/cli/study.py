@@ -1,0 +1,92 @@
+"""``eabc study``: a queue of runs against a time budget on one accelerator."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import tempfile
+import time
+from typing import Annotated
+
+import tyro
+
+from eabc import paths
+from eabc.ranges import Positive
+
+SMOKE = {"steps": 40, "log_interval": 20, "eval_interval": 20, "checkpoint_interval": 20,
+         "eval_episodes": 1}  # fmt: skip
+"""What ``--smoke`` shortens every run to (with datasets of :data:`SMOKE_DATASET_SIZE`)."""
+SMOKE_DATASET_SIZE = 2_000
+SMOKE_GROUPS, SMOKE_SEEDS = 2, 2
+
+
+@dataclasses.dataclass(frozen=True)
+class Study:
+    """Train a queue of runs on one machine within a time budget, streaming what finishes.
+
+    For a borrowed accelerator: the runs that differ only in their seed train as one vectorised
+    program, one program at a time (the GPU's memory is not pre-allocated); the queue's datasets
+    are made by background processes while the first groups train; a group starts only if its
+    estimate (scaled by how long the groups so far took) ends before --within; after each group,
+    every finished run (log rows, evaluations, summary, provenance; never checkpoints) is written
+    to --out in five files. `eabc report ROOT --include OUT` reports them; a later study given
+    `--include OUT` skips them.
+    """
+
+    specs: Annotated[tuple[str, ...], tyro.conf.Positional, tyro.conf.arg(metavar="SPEC")]
+    """Sweep specs (YAML: datasets, algos or variants, seeds, steps, train): the queue, in their
+    order and each spec's own (dataset by dataset, a group of seeds per algorithm or variant)."""
+    out: str = "study-out"
+    """Where the finished runs' results go (runs.csv, evaluations.csv, logs.csv, runs.jsonl,
+    study.log); an empty directory or one a study wrote."""
+    root: str = "sweeps/study"
+    """The run directories (checkpoints stay here, not in --out)."""
+    within: str | None = None
+    """Start only the groups that end within this time from now (e.g. 520s, 45m)."""
+    include: tuple[str, ...] = ()
+    """Earlier results (a study's --out, a report's directory): runs they hold as done are not
+    trained again."""
+    data_workers: Positive | None = None
+    """Processes that make the queue's missing datasets meanwhile (default: the CPU cores less
+    one, at least one)."""
+    steps: Positive | None = None
+    """Gradient steps per run (default the spec's)."""
+    smoke: bool = False
+    """The same code path at toy sizes: the queue's first two groups with two seeds each, 40
+    steps per run, one evaluation episode every 20 steps, datasets of 2,000 transitions in a
+    temporary cache; for a check on any machine."""
+
+
+def run_study(cmd: Study) -> None:
+    # Before JAX starts its backend: one process trains the whole queue, growing its memory as
+    # the programs need it, instead of taking 75% of the GPU up front.
+    os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+    from eabc.experiments import results, study, sweep  # noqa: PLC0415
+    from eabc.experiments.spec import expand, load_spec  # noqa: PLC0415
+
+    out = study.check_out(cmd.out)
+    size, runs = None, []
+    cache = tempfile.mkdtemp(prefix="eabc-study-smoke-") if cmd.smoke else None
+    for path in cmd.specs:
+        spec = load_spec(path)
+        if cmd.steps is not None:
+            spec["steps"] = cmd.steps
+        if cmd.smoke:
+            spec["steps"] = SMOKE["steps"]
+            train = {k: v for k, v in SMOKE.items() if k != "steps"}
+            spec["train"] = {**(spec.get("train") or {}), **train, "cache_dir": cache}
+            size = SMOKE_DATASET_SIZE
+        runs += expand(spec)
+    if cmd.smoke:  # the first groups, two seeds each: every stage of the path, in a minute
+        seeds = sorted({r.seed for r in runs})[:SMOKE_SEEDS]
+        runs = [r for group in sweep.groups(runs)[:SMOKE_GROUPS] for r in group if r.seed in seeds]
+    if cmd.include:
+        done = sweep.archived_done(runs, [results.read_archive(d) for d in cmd.include])
+        if done:
+            print(f"{len(done)} runs done in {', '.join(cmd.include)}: not trained again")
+        runs = [r for r in runs if r.run_id not in done]
+    deadline = None if cmd.within is None else time.time() + sweep.parse_duration(cmd.within)
+    workers = cmd.data_workers or max(1, (os.cpu_count() or 2) - 1)
+    report = study.run_study(runs, paths.expand(cmd.root), out, deadline, workers, size)
+    if report["failed"]:
+        raise SystemExit(f"error: {len(report['failed'])} group(s) failed; see {out / 'study.log'}")

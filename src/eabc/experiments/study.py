@@ -1,0 +1,205 @@
+"""The study engine: a queue of runs trained against a time budget on one accelerator.
+
+A lent GPU machine gives minutes, not hours, and returns only a few small files. So the queue is
+trained in one process: each group of runs that differ only in their seed is one compiled program
+(the seeds ``vmap``-ped, :func:`eabc.training.trainer.train_seeds`), groups one after another, so
+one program holds the accelerator's memory at a time (XLA's pre-allocation is turned off by the
+command). The built-in datasets the queue names are made by a pool of processes while the first
+groups train. A group starts only if its estimate ends before the deadline; the estimates are the
+contract's reference-host hints scaled by how long the groups trained so far took against theirs.
+After every finished group, everything the queue has finished is written to ``OUT`` in
+:data:`OUT_FILES` (no checkpoints), each file replaced whole, so a command stopped at its limit
+still returns all it finished. ``eabc report --include OUT`` reads ``OUT`` back beside other
+results, and a later study given ``--include OUT`` skips what it holds.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import json
+import multiprocessing
+import os
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from eabc import paths
+from eabc.data import generate
+from eabc.experiments import results, sweep
+from eabc.experiments.spec import RunSpec
+
+OUT_FILES = (
+    "runs.csv",  # one row per finished run, as `eabc report` writes it (read back by --include)
+    "evaluations.csv",  # every evaluation of those runs (step, score, return)
+    "logs.csv",  # their log.csv rows, a run_id column first
+    "runs.jsonl",  # per run: summary.json, config.json, provenance.json and the sweep's spec
+    "study.log",  # what the study did, a line per stage
+)
+"""What a study writes to its ``OUT`` folder: five files, whatever the number of runs."""
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    part = path.with_name(f".{path.name}.part")
+    part.write_text(text, encoding="utf-8")
+    os.replace(part, path)
+
+
+class StudyLog:
+    """A line per stage, to the terminal (or a log) and to ``OUT/study.log``."""
+
+    def __init__(self, out: Path, echo: Callable[[str], None] = print):
+        self.path, self.echo, self.lines = out / "study.log", echo, []
+        self.started = time.time()
+
+    def __call__(self, text: str) -> None:
+        line = f"[{time.time() - self.started:7.1f} s] {text}"
+        self.lines.append(line)
+        self.echo(line)
+        _write_atomic(self.path, "\n".join(self.lines) + "\n")
+
+
+def export(root: Path, out: Path) -> int:
+    """Write every finished run under ``root`` into ``out`` (:data:`OUT_FILES` but the log);
+    returns how many runs that is."""
+    table, evaluations = results.collect(root, write=False)
+    done = table[table["status"] == "done"] if not table.empty else table
+    _write_atomic(
+        out / "runs.csv", done.drop(columns=["config"], errors="ignore").to_csv(index=False)
+    )
+    ids = set(done["run_id"]) if not done.empty else set()
+    finished = (
+        evaluations[evaluations["run_id"].isin(ids)] if not evaluations.empty else evaluations
+    )
+    _write_atomic(out / "evaluations.csv", finished.to_csv(index=False))
+    logs, records = [], []
+    for run_id in sorted(ids):
+        run_dir = root / run_id
+        log = run_dir / "log.csv"
+        if log.is_file():
+            logs.append(pd.read_csv(log).assign(run_id=run_id))
+        record = {"run_id": run_id}
+        for name in ("summary.json", "config.json", "provenance.json", sweep.SPEC):
+            file = run_dir / name
+            record[name] = json.loads(file.read_text()) if file.is_file() else None
+        records.append(json.dumps(record, sort_keys=True))
+    frame = pd.concat(logs, ignore_index=True) if logs else pd.DataFrame(columns=["run_id"])
+    frame = frame[["run_id", *[c for c in frame.columns if c != "run_id"]]]
+    _write_atomic(out / "logs.csv", frame.to_csv(index=False))
+    _write_atomic(out / "runs.jsonl", "".join(f"{r}\n" for r in records))
+    return len(ids)
+
+
+def _make_dataset(name: str, cache_dir: str | None, size: int | None) -> str:
+    path = generate.dataset_path(name, cache_dir)
+    generate.make(name, path, size=size)
+    return str(path)
+
+
+def start_datasets(
+    job_list: list[list[RunSpec]], workers: int, size: int | None, log
+) -> tuple[dict[str, concurrent.futures.Future], concurrent.futures.Executor | None]:
+    """Make the missing built-in datasets of ``job_list`` in ``workers`` processes, in queue
+    order; returns a future per dataset (done at once for those already made) and the pool."""
+    futures: dict[str, concurrent.futures.Future] = {}
+    pool = None
+    for job in job_list:
+        config = job[0].train_config()
+        name = config.dataset
+        if name in futures or name not in generate.builtin_names():
+            continue
+        path = generate.dataset_path(name, config.cache_dir)
+        if generate.is_current(path, name):
+            futures[name] = concurrent.futures.Future()
+            futures[name].set_result(str(path))
+            continue
+        if pool is None:  # spawned: the children start without this process's JAX runtime
+            context = multiprocessing.get_context("spawn")
+            pool = concurrent.futures.ProcessPoolExecutor(workers, mp_context=context)
+        log(f"making {name} into {path} (in the background)")
+        futures[name] = pool.submit(_make_dataset, name, config.cache_dir, size)
+    return futures, pool
+
+
+def _scale(took: dict[str, list[tuple[float, float]]], algo: str) -> float:
+    """How long groups took here against their reference-host estimates: this algorithm's
+    groups where one has finished, else every finished group's, else 1."""
+    pairs = took.get(algo) or [pair for pairs in took.values() for pair in pairs]
+    return sum(a for a, _ in pairs) / sum(e for _, e in pairs) if pairs else 1.0
+
+
+def run_study(
+    runs: list[RunSpec],
+    root: Path,
+    out: Path,
+    deadline: float | None = None,
+    data_workers: int = 1,
+    dataset_size: int | None = None,
+    echo: Callable[[str], None] = print,
+) -> dict[str, Any]:
+    """Train ``runs`` group by group in this process until the queue or the time is spent.
+
+    Returns what happened: ``finished`` (run ids), ``skipped`` (groups not started because
+    their estimate ended past ``deadline``), ``failed`` (group label -> error) and ``exported``
+    (finished runs in ``out``, this study's and earlier ones' in the same root)."""
+    out.mkdir(parents=True, exist_ok=True)
+    root.mkdir(parents=True, exist_ok=True)
+    log = StudyLog(out, echo)
+    job_list = sweep.jobs(runs, root, "vmap")
+    log(f"{len(runs)} runs in {len(job_list)} groups to train in {root}")
+    futures, pool = start_datasets(job_list, data_workers, dataset_size, log)
+    took: dict[str, list[tuple[float, float]]] = {}  # algo -> (actual, estimated) seconds
+    report: dict[str, Any] = {"finished": [], "skipped": [], "failed": {}, "exported": 0}
+    try:
+        for job in job_list:
+            label = f"{job[0].dataset} {job[0].algo}{job[0].variant and ' ' + job[0].variant}"
+            label += f" seeds {','.join(str(r.seed) for r in job)}"
+            base = max(sweep.estimate_seconds(r, sweep.status(r, root)[1]) for r in job)
+            guess = base * _scale(took, job[0].algo)
+            if deadline is not None and took and time.time() + guess > deadline:
+                log(f"not started, ~{guess:.0f} s would end past the deadline: {label}")
+                report["skipped"].append(label)
+                continue
+            if job[0].dataset in futures:
+                futures[job[0].dataset].result()  # its dataset, made meanwhile
+            log(f"training {label} (~{guess:.0f} s by the estimates so far)")
+            started = time.time()
+            try:
+                sweep.execute([sweep._absolute(r) for r in job], str(root))
+            except Exception as error:  # one failed group does not stop the queue
+                log(f"failed: {label}: {error}")
+                report["failed"][label] = str(error)
+                continue
+            seconds = time.time() - started
+            took.setdefault(job[0].algo, []).append((seconds, base))
+            report["finished"] += [r.run_id for r in job]
+            report["exported"] = export(root, out)
+            log(f"done in {seconds:.0f} s: {label}; {report['exported']} runs in {out}")
+    finally:
+        if pool is not None:
+            pool.shutdown(wait=False, cancel_futures=True)
+    report["exported"] = export(root, out)
+    log(
+        f"finished {len(report['finished'])} runs, skipped {len(report['skipped'])} groups, "
+        f"{len(report['failed'])} failed; {report['exported']} runs in {out}"
+    )
+    return report
+
+
+def check_out(out: str | Path) -> Path:
+    """``out`` as a directory a study may write: new, empty, or one a study wrote before."""
+    path = paths.expand(out)
+    if path.exists() and not path.is_dir():
+        raise ValueError(f"--out {out} is a file: give a directory for the study's results")
+    if path.is_dir():
+        foreign = [
+            p.name for p in path.iterdir() if p.name not in OUT_FILES and not p.name.startswith(".")
+        ]
+        if foreign:
+            raise ValueError(
+                f"--out {out} holds other files ({', '.join(sorted(foreign)[:3])}): give an empty "
+                "directory or one a study wrote"
+            )
+    return path

@@ -1,0 +1,145 @@
+"""The study engine (``eabc study``, benchmarks/study.sh): the device script's smoke run end to end,
+what it streams and how it is read back, the deadline, and the wheels it carries."""
+
+from __future__ import annotations
+
+import importlib.metadata
+import os
+import re
+import subprocess
+import time
+from pathlib import Path
+
+import pandas as pd
+import pytest
+from packaging.requirements import Requirement
+
+from eabc import cli
+from eabc.experiments import results, study, sweep
+from eabc.experiments.spec import expand
+
+ROOT = Path(__file__).resolve().parent.parent
+SCRIPT = ROOT / "benchmarks" / "study.sh"
+
+
+def test_the_device_script_smoke_run_streams_finished_runs_that_report_reads(tmp_path):
+    """The very script a lent GPU runs, at toy sizes on this CPU: the queue's first two groups
+    (two seeds each) train, and OUT holds exactly the study's files, its runs done and read
+    back by `eabc report --include`; a second study given --include OUT trains nothing."""
+    out = tmp_path / "out"
+    env = {**os.environ, "OUT": str(out), "EABC_FAST_COMPILE": "1", "TMPDIR": str(tmp_path)}
+    done = subprocess.run(
+        ["bash", str(SCRIPT), "--smoke"], env=env, capture_output=True, text=True, timeout=900
+    )
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+    assert sorted(p.name for p in out.iterdir()) == sorted(study.OUT_FILES)
+    runs, evaluations = results.read_archive(out)
+    assert sorted(runs["run_id"]) == [
+        f"runs/hopper-medium__{algo}__seed{seed}" for algo in ("eabc", "td3bc") for seed in (0, 1)
+    ]
+    assert (runs["status"] == "done").all() and (runs["steps"] == 40).all()
+    assert len(evaluations) == 4 * 2  # every 20 of 40 steps
+    logs = pd.read_csv(out / "logs.csv")
+    assert list(logs.columns[:2]) == ["run_id", "step"] and len(logs) == 4 * 2
+    assert "training hopper-medium td3bc seeds 0,1" in (out / "study.log").read_text()
+    again = tmp_path / "again"
+    spec = sorted((ROOT / "docs" / "results" / "study-1m").glob("[0-9]*.yaml"))[0]
+    argv = ["study", str(spec), "--smoke", "--out", str(again), "--root", str(tmp_path / "r2")]
+    cli.main([*argv, "--include", str(out)])
+    assert pd.read_csv(again / "runs.csv").empty  # all four were in OUT: none trained again
+
+
+def _queue(tmp_path):
+    spec = {"datasets": ["hopper-medium", "walker2d-medium", "hopper-random"],
+            "algos": ["td3bc"], "seeds": [0], "steps": 1000}  # fmt: skip
+    return expand(spec)
+
+
+def test_a_group_starts_only_if_its_scaled_estimate_ends_before_the_deadline(tmp_path, monkeypatch):
+    """The first group starts whatever its estimate; it took a fifth of its estimate, so the
+    next ones are scaled by 0.2: one of 100 s (20 s) does not fit a 5 s budget, one of 10 s
+    (2 s) does, and the queue goes on past the one it skipped."""
+    estimates = {"hopper-medium": 1.0, "walker2d-medium": 100.0, "hopper-random": 10.0}
+    monkeypatch.setattr(sweep, "estimate_seconds", lambda run, done=0: estimates[run.dataset])
+    trained = []
+
+    def execute(job, root):
+        trained.append(job[0]["dataset"])
+        time.sleep(0.2)
+
+    monkeypatch.setattr(sweep, "execute", execute)
+    monkeypatch.setattr(study, "start_datasets", lambda *a: ({}, None))
+    report = study.run_study(
+        _queue(tmp_path), tmp_path / "root", tmp_path / "out", time.time() + 5, echo=lambda _: None
+    )
+    assert trained == ["hopper-medium", "hopper-random"]
+    assert report["skipped"] == ["walker2d-medium td3bc seeds 0"]
+    log = (tmp_path / "out" / "study.log").read_text()
+    assert "not started, ~20 s would end past the deadline: walker2d-medium" in log
+
+
+def test_a_failed_group_is_named_and_the_queue_goes_on(tmp_path, monkeypatch):
+    def execute(job, root):
+        if job[0]["dataset"] == "walker2d-medium":
+            raise ValueError("no memory for it")
+
+    monkeypatch.setattr(sweep, "execute", execute)
+    monkeypatch.setattr(study, "start_datasets", lambda *a: ({}, None))
+    report = study.run_study(
+        _queue(tmp_path), tmp_path / "root", tmp_path / "out", echo=lambda _: None
+    )
+    assert report["failed"] == {"walker2d-medium td3bc seeds 0": "no memory for it"}
+    assert report["finished"] == ["hopper-medium__td3bc__seed0", "hopper-random__td3bc__seed0"]
+
+
+def test_out_must_be_empty_or_a_studys(tmp_path):
+    (tmp_path / "study.log").write_text("")
+    assert study.check_out(tmp_path) == tmp_path
+    (tmp_path / "notes.txt").write_text("mine")
+    with pytest.raises(ValueError, match=r"holds other files \(notes.txt\)"):
+        study.check_out(tmp_path)
+    with pytest.raises(ValueError, match="is a file"):
+        study.check_out(tmp_path / "notes.txt")
+
+
+NOT_NEEDED_AT_RUN_TIME = {
+    "eabc",
+    "mujoco-studio",  # MuJoCo's viewer, never imported by training or evaluation
+    "mujoco-studio-wasm",
+    "websockets",  # the viewer's
+    "tzdata",  # pandas' time zones; the image's pandas brings what it needs
+}
+
+
+def _closure(name: str, seen: set[str]) -> None:
+    key = re.sub(r"[-_.]+", "-", name).lower()
+    if key in seen:
+        return
+    seen.add(key)
+    try:
+        requires = importlib.metadata.distribution(name).requires or []
+    except importlib.metadata.PackageNotFoundError:
+        return
+    marker_env = {"python_version": "3.12", "python_full_version": "3.12.3", "extra": ""}
+    for line in requires:
+        requirement = Requirement(line)
+        if requirement.marker is None or requirement.marker.evaluate(marker_env):
+            _closure(requirement.name, seen)
+
+
+def test_the_carried_wheels_are_what_the_gpu_image_lacks():
+    """Every package ``eabc`` needs (its requirements' closure, for the image's Python 3.12)
+    is in the GPU machine's image (benchmarks/device-packages.txt) or among the wheels
+    benchmarks/study.sh carries; no carried wheel is one the image has."""
+    text = SCRIPT.read_text()
+    wheels = set(re.search(r"WHEELS=\(([^)]*)\)", text).group(1).split())
+    image = {
+        re.sub(r"[-_.]+", "-", line.strip()).lower()
+        for line in (ROOT / "benchmarks" / "device-packages.txt").read_text().splitlines()
+        if line.strip() and not line.startswith("#")
+    }
+    needed: set[str] = set()
+    _closure("eabc", needed)
+    missing = needed - image - wheels - NOT_NEEDED_AT_RUN_TIME
+    assert not missing, f"add to WHEELS in benchmarks/study.sh: {sorted(missing)}"
+    assert not wheels & image, f"the image has these already: {sorted(wheels & image)}"
