@@ -19,6 +19,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import os
 import shutil
 from pathlib import Path
 
@@ -214,3 +215,72 @@ def test_a_file_of_timeouts_only_is_described_as_such(tmp_path):
     message = str(error.value)
     assert "empty" not in message and "40 rows" in message and "timeout" in message
     assert str(path) in message and "\n" not in message
+
+
+# ----------------------------------------------------------------------------------------------
+# Sweeps: every name and dataset checked before any job starts
+
+
+def sweep_argv(tmp_path: Path, *datasets: str) -> list[str]:
+    return ["sweep", "--datasets", *datasets, "--algos", "td3bc", "--seeds", "0", "--steps",
+            "200", "--root", str(tmp_path / "root")]  # fmt: skip
+
+
+@pytest.mark.parametrize("dry_run", [True, False])
+def test_a_sweep_whose_run_directory_name_is_too_long_is_refused_before_any_job(tmp_path, dry_run):
+    """A dataset file may have a 240-character name; its run directory's name (with the
+    algorithm and the seed) then exceeds the file system's 255 bytes. Before: the dry run
+    listed it as pending, and the sweep died on it with a traceback, killing its healthy
+    running job."""
+    good, long = tmp_path / "good.npz", tmp_path / f"{'d' * 236}.npz"
+    for path in (good, long):
+        np.savez(path, **tiny_arrays(), env_id=np.asarray("Pendulum-v1"))
+    before = snapshot(tmp_path)
+    argv = sweep_argv(tmp_path, str(good), str(long)) + ["--dry-run"] * dry_run
+    with pytest.raises(SystemExit) as exit_:
+        main(argv)
+    message = str(exit_.value.code)
+    assert message.startswith("error: ") and "\n" not in message, message
+    assert str(long) in message and "255" in message
+    assert snapshot(tmp_path) == before and not (tmp_path / "root").exists()
+
+
+@pytest.mark.parametrize("dry_run", [True, False])
+def test_a_sweep_naming_a_missing_minari_dataset_is_refused_before_any_job(
+    tmp_path, monkeypatch, dry_run
+):
+    """The README promises every dataset is checked before the first run starts. Before: a
+    ``minari:`` dataset was found missing only when its job started."""
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "minari"))
+    good = tmp_path / "good.npz"
+    np.savez(good, **tiny_arrays(), env_id=np.asarray("Pendulum-v1"))
+    argv = sweep_argv(tmp_path, str(good), "minari:test/pendulum/absent-v0")
+    with pytest.raises(SystemExit) as exit_:
+        main(argv + ["--dry-run"] * dry_run)
+    message = str(exit_.value.code)
+    assert "test/pendulum/absent-v0" in message and "\n" not in message, message
+    assert not (tmp_path / "root").exists()
+
+
+@pytest.mark.parametrize(
+    "junk", [b"", b"not an HDF5 file", b"\x89HDF\r\n\x1a\n" + b"\0" * 100, "directory", "fifo"]
+)
+def test_a_junk_file_in_the_cache_does_not_stop_data_list(tmp_path, monkeypatch, capsys, junk):
+    """Before: one unreadable file in the cache stopped ``eabc data list`` with an error."""
+    monkeypatch.setenv("EABC_CACHE_DIR", str(tmp_path / "cache"))
+    folder = tmp_path / "cache" / "datasets"
+    folder.mkdir(parents=True)
+    path = folder / "hopper-random.hdf5"
+    if junk == "directory":
+        path.mkdir()
+    elif junk == "fifo":
+        os.mkfifo(path)
+    else:
+        path.write_bytes(junk)
+    (folder / "walker2d-random.info.json").write_text("{junk")  # a sidecar without its file
+    main(["data", "list"])
+    out = capsys.readouterr().out
+    row = next(line for line in out.splitlines() if line.startswith("hopper-random "))
+    assert "unreadable" in row and "eabc data make hopper-random --force" in row
+    assert any(line.startswith("walker2d-random ") for line in out.splitlines())
+    assert len(out.splitlines()) > 10  # every built-in dataset is listed

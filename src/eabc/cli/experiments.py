@@ -207,6 +207,7 @@ def run_sweep(cmd: Sweep) -> None:
     runs = expand(sweep_spec(cmd))
     for dataset in dict.fromkeys(run.dataset for run in runs):  # all, before the first run
         sources.check_source(dataset)
+    sweep.check_names(runs, root)  # and every run's name, in a dry run too
     if cmd.include:
         archived = sweep.archived_done(runs, [results.read_archive(d) for d in cmd.include])
         if archived:

@@ -5,8 +5,12 @@ Names (built-in datasets, Minari ids) are resolved one layer up, in :mod:`eabc.d
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import re
+import shutil
+import tempfile
 import warnings
 import zipfile
 import zlib
@@ -172,12 +176,74 @@ def save_npz(dataset: Dataset, path: str | os.PathLike) -> None:
     np.savez(path, **arrays, **{k: np.asarray(v) for k, v in attrs.items()})
 
 
+MINARI_ID = re.compile(r"[-\w]+(?:/[-\w]+)*-v\d+")
+"""A Minari id: ``NAMESPACE/.../NAME-vN`` of letters, digits, ``-`` and ``_`` (Minari's own
+pattern, its version required): never ``..``, ``.``, an empty or an absolute path, so that the
+dataset's folder lies inside the Minari path."""
+
+
+def check_minari_id(dataset_id: str, what: str) -> None:
+    """Refuse, in one line naming ``what`` (the flag or ``minari:ID``), an id that is not
+    :data:`MINARI_ID`, before any folder is looked at or made."""
+    if not MINARI_ID.fullmatch(dataset_id):
+        raise DatasetError(
+            f"{what}: {dataset_id!r} is not a Minari id; an id is NAMESPACE/NAME-vN (e.g. "
+            "eabc/hopper/medium-v0) of letters, digits, - and _, with its version -vN, and "
+            "names a folder inside the Minari path (no '..', '.', '~' or leading '/')"
+        )
+
+
+def minari_root() -> Path:
+    """The local Minari path, as Minari finds it ($MINARI_DATASETS_PATH, else
+    ~/.minari/datasets), without making it."""
+    return Path(os.environ.get("MINARI_DATASETS_PATH") or Path.home() / ".minari" / "datasets")
+
+
 def has_minari(dataset_id: str) -> bool:
+    """Whether ``dataset_id`` is a folder of the local Minari path (intact or not: reading it
+    says which). Minari's own listing is not asked: one broken folder makes it raise for all."""
     try:
-        import minari  # noqa: PLC0415
+        import minari  # noqa: F401, PLC0415
     except ImportError:
         return False
-    return dataset_id in minari.list_local_datasets()
+    return bool(MINARI_ID.fullmatch(dataset_id)) and (minari_root() / dataset_id / "data").is_dir()
+
+
+def check_minari(dataset_id: str) -> Path:
+    """Refuse what :func:`load_minari` would refuse before reading any episode: Minari's AntMaze
+    data, an id that is not one, a missing minari package, a dataset that is not in the local
+    Minari path, and one whose ``metadata.json`` is missing or not its own (damaged). The
+    dataset's ``data`` folder otherwise. A sweep checks every ``minari:`` dataset so."""
+    refuse_minari_antmaze(dataset_id)  # with or without minari
+    check_minari_id(dataset_id, f"minari:{dataset_id}")
+    try:
+        import minari  # noqa: F401, PLC0415
+    except ImportError:
+        raise DatasetError(
+            f"minari:{dataset_id} needs the minari package: pip install 'eabc[minari]'"
+        ) from None
+    folder = minari_root() / dataset_id / "data"
+    if not folder.is_dir():
+        raise DatasetError(
+            f"Minari dataset {dataset_id!r} is not in the local Minari path ({minari_root()}); "
+            "set MINARI_DATASETS_PATH or make it there first"
+        )
+    metadata = folder / "metadata.json"
+    try:
+        recorded = json.loads(paths.read_file(metadata).decode()).get("dataset_id")
+    except (OSError, ValueError, AttributeError) as error:
+        why = getattr(error, "strerror", None) or type(error).__name__
+        raise DatasetError(_damaged(dataset_id, f"{metadata} cannot be read ({why})")) from None
+    if recorded != dataset_id:
+        raise DatasetError(_damaged(dataset_id, f"{metadata} names dataset {recorded!r}"))
+    return folder
+
+
+def _damaged(dataset_id: str, problem: str) -> str:
+    return (
+        f"minari:{dataset_id} is damaged: {problem}; it is truncated, corrupt or half written: "
+        f"export or download it again (remove {minari_root() / dataset_id} first)"
+    )
 
 
 GOAL_KEYS = frozenset({"observation", "achieved_goal", "desired_goal"})
@@ -197,32 +263,31 @@ def load_minari(dataset_id: str) -> Dataset:
     """A Minari dataset from the local Minari path (never downloads); its observations must be
     flat vectors. Minari's AntMaze data (``D4RL/antmaze/*``, or any goal-dict dataset of an
     AntMaze task) are refused: see :func:`_gymnasium_robotics_antmaze`."""
-    refuse_minari_antmaze(dataset_id)  # with or without minari
-    try:
-        import minari  # noqa: PLC0415
-    except ImportError:
-        raise DatasetError(
-            f"minari:{dataset_id} needs the minari package: pip install 'eabc[minari]'"
-        ) from None
+    folder = check_minari(dataset_id)
+    import minari  # noqa: PLC0415
 
-    if dataset_id not in minari.list_local_datasets():
+    try:
+        data = minari.MinariDataset(folder)
+        _check_flat_observations(dataset_id, data.observation_space, data.env_spec)
+        parts = {k: [] for k in ("observations", "actions", "rewards", "next_observations")}
+        terminals, timeouts = [], []
+        for episode in data.iterate_episodes():
+            parts["observations"].append(episode.observations[:-1])
+            parts["next_observations"].append(episode.observations[1:])
+            parts["actions"].append(episode.actions)
+            parts["rewards"].append(episode.rewards)
+            terminals.append(episode.terminations)
+            timeouts.append(episode.truncations)
+        metadata = data.storage.metadata
+        env_spec = data.env_spec
+    except DatasetError:
+        raise
+    except Exception as error:  # noqa: BLE001 (h5py, pyarrow and Minari raise many kinds)
+        files = ", ".join(sorted(str(p) for p in folder.iterdir() if p.name != "metadata.json"))
+        why = " ".join(str(error).split())[:200] or type(error).__name__
         raise DatasetError(
-            f"Minari dataset {dataset_id!r} is not in the local Minari path "
-            f"({minari.storage.get_dataset_path('')}); set MINARI_DATASETS_PATH or make it there first"
-        )
-    data = minari.load_dataset(dataset_id, download=False)
-    _check_flat_observations(dataset_id, data.observation_space, data.env_spec)
-    parts = {k: [] for k in ("observations", "actions", "rewards", "next_observations")}
-    terminals, timeouts = [], []
-    for episode in data.iterate_episodes():
-        parts["observations"].append(episode.observations[:-1])
-        parts["next_observations"].append(episode.observations[1:])
-        parts["actions"].append(episode.actions)
-        parts["rewards"].append(episode.rewards)
-        terminals.append(episode.terminations)
-        timeouts.append(episode.truncations)
-    metadata = data.storage.metadata
-    env_spec = data.env_spec
+            _damaged(dataset_id, f"{files or folder} cannot be read ({why})")
+        ) from None
     return Dataset(
         **{k: np.concatenate(v) for k, v in parts.items()},
         terminals=np.concatenate(terminals),
@@ -289,24 +354,16 @@ def export_minari(dataset: Dataset, dataset_id: str, overwrite: bool = False) ->
     """Write ``dataset`` as a local Minari dataset (episodes split at terminals and timeouts).
 
     Readers such as d3rlpy or CORL can then use it with ``minari.load_dataset(dataset_id)``;
-    :func:`load_minari` reads it back to the same transitions.
+    :func:`load_minari` reads it back to the same transitions. Minari writes into a hidden
+    folder of the Minari path (which its listing skips), renamed into place when complete: an
+    export that fails or is killed half way never leaves a folder that Minari lists.
     """
     import gymnasium as gym  # noqa: PLC0415
 
-    try:
-        import minari  # noqa: PLC0415
-        from minari.data_collector import EpisodeBuffer  # noqa: PLC0415
-    except ImportError:
-        raise DatasetError(
-            "exporting to Minari needs the minari package: pip install 'eabc[minari]'"
-        ) from None
+    check_export_target(dataset_id, overwrite)
+    import minari  # noqa: PLC0415
+    from minari.data_collector import EpisodeBuffer  # noqa: PLC0415
 
-    if dataset_id in minari.list_local_datasets():
-        if not overwrite:
-            raise FileExistsError(
-                f"Minari dataset {dataset_id!r} exists already; pass --force to replace it"
-            )
-        minari.delete_dataset(dataset_id)
     ends = np.flatnonzero(dataset.terminals | dataset.timeouts)
     if len(ends) == 0 or ends[-1] != dataset.size - 1:
         ends = np.append(ends, dataset.size - 1)
@@ -326,21 +383,82 @@ def export_minari(dataset: Dataset, dataset_id: str, overwrite: bool = False) ->
             )
         )
     env = gym.make(dataset.env_id) if dataset.env_id else None
-    with warnings.catch_warnings():  # Minari nags about author e-mail and code links
-        warnings.simplefilter("ignore", UserWarning)
-        minari.create_dataset_from_buffers(
-            dataset_id,
-            episodes,
-            env=env,
-            algorithm_name="eabc " + dataset.metadata.get("recipe", "dataset"),
-            author="eabc",
-            ref_min_score=dataset.ref_min_score,
-            ref_max_score=dataset.ref_max_score,
-            description=f"{dataset.name}, exported by eabc; metadata: {json.dumps(dataset.metadata)}",
-            observation_space=None if env else _box(dataset.observations),
-            action_space=None if env else _box(dataset.actions),
-        )
+    root = minari_root()
+    root.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(dir=root, prefix=".eabc-export.", suffix=".tmp"))
+    try:
+        with _minari_path(staging), warnings.catch_warnings():  # Minari nags about e-mails
+            warnings.simplefilter("ignore", UserWarning)
+            _create(minari, dataset, dataset_id, episodes, env)
+        _move_into_place(staging, root, dataset_id)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
     return dataset_id
+
+
+def check_export_target(dataset_id: str, overwrite: bool) -> None:
+    """Refuse, before any data is loaded or made, an export id that is not a Minari id
+    (:func:`check_minari_id`), a missing minari package, and an id that is taken (without
+    ``--force``)."""
+    check_minari_id(dataset_id, "--dataset-id")
+    try:
+        import minari  # noqa: F401, PLC0415
+    except ImportError:
+        raise DatasetError(
+            "exporting to Minari needs the minari package: pip install 'eabc[minari]'"
+        ) from None
+    target = minari_root() / dataset_id
+    if (target.exists() or target.is_symlink()) and not overwrite:
+        raise FileExistsError(
+            f"Minari dataset {dataset_id!r} exists already ({target}); pass --force to replace it"
+        )
+
+
+@contextlib.contextmanager
+def _minari_path(folder: Path):
+    """Minari's path set to ``folder`` while Minari writes (it takes the path from there only)."""
+    old = os.environ.get("MINARI_DATASETS_PATH")
+    os.environ["MINARI_DATASETS_PATH"] = str(folder)
+    try:
+        yield
+    finally:
+        if old is None:
+            os.environ.pop("MINARI_DATASETS_PATH", None)
+        else:
+            os.environ["MINARI_DATASETS_PATH"] = old
+
+
+def _move_into_place(staging: Path, root: Path, dataset_id: str) -> None:
+    """Rename the complete dataset from ``staging`` to ``root / dataset_id`` (an existing one
+    there moved into ``staging`` first, removed with it), with the namespace files Minari wrote
+    for namespaces that ``root`` does not have yet."""
+    target = root / dataset_id
+    parts = Path(dataset_id).parts
+    for depth in range(1, len(parts)):  # the namespaces: eabc, eabc/hopper, ...
+        made = staging.joinpath(*parts[:depth], "namespace_metadata.json")
+        kept = root.joinpath(*parts[:depth], "namespace_metadata.json")
+        kept.parent.mkdir(exist_ok=True)
+        if made.is_file() and not kept.exists():
+            os.replace(made, kept)
+    if target.exists() or target.is_symlink():
+        os.replace(target, staging / ".replaced")
+    os.replace(staging / dataset_id, target)
+
+
+def _create(minari, dataset: Dataset, dataset_id: str, episodes: list, env) -> None:
+    """Minari's own writer, into the Minari path of the moment."""
+    minari.create_dataset_from_buffers(
+        dataset_id,
+        episodes,
+        env=env,
+        algorithm_name="eabc " + dataset.metadata.get("recipe", "dataset"),
+        author="eabc",
+        ref_min_score=dataset.ref_min_score,
+        ref_max_score=dataset.ref_max_score,
+        description=f"{dataset.name}, exported by eabc; metadata: {json.dumps(dataset.metadata)}",
+        observation_space=None if env else _box(dataset.observations),
+        action_space=None if env else _box(dataset.actions),
+    )
 
 
 def _box(array: np.ndarray):

@@ -32,14 +32,14 @@ def load_dataset(source: str | os.PathLike, cache_dir: str | os.PathLike | None 
 def check_source(source: str | os.PathLike) -> None:
     """Refuse what :func:`load_dataset` would refuse for its name or path alone, loading and
     making nothing: a file that is missing or not a regular file, a name that is none of the
-    above, Minari's AntMaze data (:func:`loaders.refuse_minari_antmaze`). A sweep
-    checks every dataset so before its first run starts."""
+    above, a Minari dataset that is not there or damaged, or Minari's AntMaze data
+    (:func:`loaders.check_minari`). A sweep checks every dataset so before its first run starts."""
     text = str(source)
     path = paths.expand(text)
     if path.suffix in (".hdf5", ".h5", ".npz") or path.exists():
         schema.regular_file(path)
     elif text.startswith("minari:"):
-        loaders.refuse_minari_antmaze(text.removeprefix("minari:"))
+        loaders.check_minari(text.removeprefix("minari:"))
     elif not (text in generate.builtin_names() or ("/" in text and loaders.has_minari(text))):
         raise _unknown(text)
 

@@ -77,6 +77,42 @@ def _status(run: RunSpec, root: Path) -> tuple[str, int, str]:
     return "pending", 0, ""
 
 
+def check_names(runs: list[RunSpec], root: Path) -> None:
+    """Refuse, before any job starts (and in a dry run), a run whose directory or log file
+    would be named longer than the file system under ``root`` allows (255 bytes on most), or
+    whose files' paths would be longer than its path limit: a dataset file may have a
+    240-character name, and its run's name adds the algorithm, the settings and the seed. Found
+    when its job started, it stopped the sweep and the healthy jobs running beside it."""
+    existing = paths.expand(root).absolute()
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    name_max, path_max = (_limit(existing, key, default) for key, default in
+                          (("PC_NAME_MAX", 255), ("PC_PATH_MAX", 4096)))  # fmt: skip
+    for run in runs:
+        log_name = f"{run.run_id}.log"  # the longest name: the run's log, beside its directory
+        if len(log_name.encode()) > name_max:
+            raise ValueError(
+                f"{run.dataset}: the sweep would name this run's directory and log "
+                f"{log_name[:48]}... ({len(log_name.encode())} bytes), longer than the "
+                f"{name_max} bytes the file system of {existing} allows in a name; give the "
+                "dataset (file) a shorter name, or the grid fewer settings"
+            )
+        deepest = paths.expand(root).absolute() / RUNS / run.run_id / ".checkpoint.msgpack.x.tmp"
+        if len(str(deepest).encode()) + 16 > path_max:
+            raise ValueError(
+                f"{run.dataset}: this run's files would lie {len(str(deepest).encode())} bytes "
+                f"deep under --root, longer than the {path_max} bytes the file system allows in "
+                "a path; use a shorter --root or give the dataset a shorter name"
+            )
+
+
+def _limit(path: Path, key: str, default: int) -> int:
+    try:
+        return os.pathconf(path, key)
+    except (OSError, ValueError):
+        return default
+
+
 def _read_json(path: Path) -> dict:
     try:
         data = json.loads(paths.read_file(path).decode())
