@@ -86,7 +86,7 @@ def test_policy_dataset_layout_boundaries_and_determinism(tiny_zoo, tmp_path):
     inside = np.setdiff1d(np.arange(data.size - 1), ends)
     np.testing.assert_array_equal(data.next_observations[inside], data.observations[inside + 1])
     # Actions are sampled, not the deterministic mean: the dataset is not a deterministic rollout.
-    mean_action = zoo.networks.numpy_actor(
+    mean_action = zoo.numpy_networks.numpy_actor(
         zoo.load_actor(zoo.policy_path("hopper", "medium", root)), 1.0, gaussian=True
     )
     assert np.abs(mean_action(data.observations[:100]) - data.actions[:100]).mean() > 1e-3

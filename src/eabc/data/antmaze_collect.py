@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 from tqdm.auto import tqdm
 
-from eabc import networks
+from eabc import numpy_networks
 from eabc.data import antmaze, mazes, zoo
 from eabc.data.dataset import Dataset, DatasetError
 from eabc.data.mazes import Cell, Maze
@@ -136,26 +136,36 @@ def collect(
     num_envs: int = NUM_ENVS,
     action_noise: float = ACTION_NOISE,
     desc: str = "antmaze",
+    first: int = 0,
+    stop: int | None = None,
+    progress: bool = True,
 ) -> Collected:
-    """Roll out ``episodes`` controller episodes in ``maze_name`` (:data:`FAMILIES`).
+    """Roll out ``episodes`` controller episodes in ``maze_name`` (:data:`FAMILIES`), or of them
+    only episodes ``first`` (a multiple of ``num_envs``) to ``stop``: batches are independent.
 
     Episode ``i`` draws everything (cells, reset, waypoint and action noise) from its own generator
     seeded with ``(seed, i)``: the data are the same for a seed, whatever the number of episodes.
     """
     maze = mazes.get(maze_name)
     steps = max_episode_steps or maze.max_episode_steps
-    act = networks.numpy_actor(actor, 1.0, gaussian=True)
+    act = numpy_networks.numpy_actor(actor, 1.0, gaussian=True)
     envs = [antmaze.AntMazeEnv(maze.name, terminate_on_success=False) for _ in range(num_envs)]
-    rows = episodes * steps
+    stop = episodes if stop is None else stop
+    if first % num_envs or not 0 <= first < stop <= episodes:
+        raise ValueError(f"episodes {first} to {stop} of {episodes} are not whole batches")
+    rows = (stop - first) * steps
     obs_out = np.empty((rows, antmaze.OBS_DIM), np.float32)
     next_out = np.empty((rows, antmaze.OBS_DIM), np.float32)
     act_out = np.empty((rows, envs[0].action_space.shape[0]), np.float32)
-    goals = np.empty((episodes, 2))
-    success, flipped = np.zeros(episodes, bool), np.zeros(episodes, bool)
-    bar = tqdm(total=rows, desc=desc, unit="step", mininterval=1.0, leave=False, disable=None)
-    for first in range(0, episodes, num_envs):
+    goals = np.empty((stop - first, 2))
+    success, flipped = np.zeros(stop - first, bool), np.zeros(stop - first, bool)
+    bar = tqdm(
+        total=rows, desc=desc, unit="step", mininterval=1.0, leave=False,
+        disable=None if progress else True,
+    )  # fmt: skip
+    for batch in range(first, stop, num_envs):
         # Always a full batch (the policy's batch size stays the same); extra episodes are dropped.
-        ids = range(first, first + num_envs)
+        ids = range(batch, batch + num_envs)
         rngs = [np.random.default_rng([seed, i]) for i in ids]
         obs = []
         for env, rng in zip(envs, rngs):
@@ -166,7 +176,7 @@ def collect(
         batch_goals = np.array([env.goal for env in envs])
         planners = [mazes.WaypointPlanner(maze, g) for g in batch_goals]
         reached, flips = np.zeros(num_envs, bool), np.zeros(num_envs, bool)
-        live = [k for k, i in enumerate(ids) if i < episodes]
+        live = [k for k, i in enumerate(ids) if i < stop]
         for t in range(steps):
             targets = [plan(o[:2], r) for plan, o, r in zip(planners, obs, rngs)]
             low = np.stack([antmaze.lowlevel_observation(o, w) for o, w in zip(obs, targets)])
@@ -177,13 +187,13 @@ def collect(
             reached |= mazes.is_success(next_obs[:, :2], batch_goals)
             flips |= upside_down(next_obs)
             for k in live:
-                row = (first + k) * steps + t
+                row = (batch - first + k) * steps + t
                 obs_out[row], act_out[row], next_out[row] = obs[k], actions[k], next_obs[k]
             obs = next_obs
             bar.update(len(live))
         for k in live:
-            goals[first + k], success[first + k] = batch_goals[k], reached[k]
-            flipped[first + k] = flips[k]
+            goals[batch - first + k], success[batch - first + k] = batch_goals[k], reached[k]
+            flipped[batch - first + k] = flips[k]
     bar.close()
     return Collected(obs_out, act_out, next_out, goals, success, flipped)
 
@@ -206,7 +216,7 @@ def open_plane(
     5-10 m away (as the controller feeds it the waypoint's), it comes within 0.5 m of the goal
     within the time limit, how often the ant flips on the way (until the goal or the limit), and
     the median steps to the goal. Episode ``i`` draws from a generator seeded with ``(seed, i)``."""
-    act = networks.numpy_actor(actor, 1.0, gaussian=True)
+    act = numpy_networks.numpy_actor(actor, 1.0, gaussian=True)
     env = antmaze.AntDirectionEnv()
     success, flipped, taken = np.zeros(episodes, bool), np.zeros(episodes, bool), []
     for i in range(episodes):
@@ -245,10 +255,23 @@ def make_dataset(
     """``size`` transitions of the AntMaze dataset ``antmaze-KIND``, relabelled against the
     evaluation goal; the transitions and a summary of the controller's episodes."""
     maze_name, family = dataset_family(kind)
+    episodes = episodes_for(kind, size)
+    data = collect(maze_name, family, episodes, seed, actor, num_envs=num_envs, desc=name)
+    return relabelled(name, kind, size, data, num_envs)
+
+
+def episodes_for(kind: str, size: int) -> int:
+    """Whole episodes that ``size`` transitions of ``antmaze-KIND`` are cut from."""
+    return -(-size // mazes.get(dataset_family(kind)[0]).max_episode_steps)
+
+
+def relabelled(
+    name: str, kind: str, size: int, data: Collected, num_envs: int
+) -> tuple[Dataset, dict]:
+    """:func:`make_dataset`'s result from the collected episodes ``data``."""
+    maze_name, family = dataset_family(kind)
     maze = mazes.get(maze_name)
     steps = maze.max_episode_steps
-    episodes = -(-size // steps)
-    data = collect(maze_name, family, episodes, seed, actor, num_envs=num_envs, desc=name)
     goal = relabel_goal(maze)
     rewards, terminals = mazes.relabel(data.next_observations[:size, :2], goal)
     timeouts = np.zeros(size, bool)

@@ -8,9 +8,10 @@ controller (:mod:`eabc.data.antmaze_collect`).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
-import warnings
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -18,7 +19,7 @@ import h5py
 import numpy as np
 from tqdm.auto import tqdm
 
-from eabc.data import tasks
+from eabc.data import parallel, tasks
 from eabc.data.dataset import Dataset, DatasetError, concatenate
 from eabc.data.loaders import load_file
 from eabc.paths import cache_dir
@@ -141,10 +142,12 @@ def make(
     seed: int = 0,
     size: int | None = None,
     zoo_root: str | os.PathLike | None = None,
+    workers: int = 1,
 ) -> Path:
     """Make the built-in dataset ``name`` and write it to ``path`` in D4RL's HDF5 layout.
 
-    Deterministic: the same name, seed, size and zoo give a bit-identical file.
+    Deterministic: the same name, seed, size and zoo give a bit-identical file, whatever the
+    number of ``workers`` (processes; see :mod:`eabc.data.parallel` for where they help).
     """
     from eabc.data import zoo  # noqa: PLC0415
 
@@ -157,28 +160,26 @@ def make(
     env_name, kind = task
     size = size or default_size(name)
     if env_name == "antmaze":
-        return _make_antmaze(name, kind, path, seed, size, zoo_root)
+        return _make_antmaze(name, kind, path, seed, size, zoo_root, workers)
     env = tasks.ENVS[env_name]
     metadata = {"recipe": RECIPES[kind], "seed": seed, "version": FORMAT_VERSION}
     if kind != "random":
         metadata["zoo"] = zoo.fingerprint(env_name, kind, zoo_root)
-    if kind == "random":
-        dataset = rollout(env.env_id, None, size, seed, desc=name)
-    elif kind in ("medium", "expert"):
+    if kind != "medium-expert":
+        dataset = concatenate(_rollouts(rollouts(name, seed, size, zoo_root), workers, name), name)
+    if kind in ("medium", "expert"):
         card = zoo.card(env_name, zoo_root)
-        actor = zoo.load_actor(zoo.policy_path(env_name, kind, zoo_root))
-        dataset = rollout(env.env_id, zoo.sampler(actor), size, seed, desc=name)
         metadata["policy"] = {**card[kind], "training_steps": card["training_steps"]}
     elif kind == "medium-replay":
-        dataset, phases = _medium_replay(env_name, size, seed, zoo_root)
-        metadata["phases"] = phases
-    else:
+        metadata["phases"] = _replay_phases(env_name, size, zoo_root)
+    elif kind == "medium-expert":
         parts = [
             _load_or_make_part(
                 Path(path).parent / f"{env_name}-{part}.hdf5",
                 size // 2 + (size % 2) * (part == "medium"),
                 seed,
                 zoo_root,
+                workers,
             )
             for part in ("medium", "expert")
         ]
@@ -197,14 +198,23 @@ def make(
     return save_hdf5(dataset, path)
 
 
-def _make_antmaze(name: str, kind: str, path, seed: int, size: int, zoo_root) -> Path:
+def _make_antmaze(name: str, kind: str, path, seed: int, size: int, zoo_root, workers) -> Path:
     """An AntMaze dataset with its conventions as its own settings: the evaluation environment,
     reference scores 0 and 1 (the score is 100 x the success rate) and the reward offset -1."""
     from eabc.data import antmaze_collect  # noqa: PLC0415
 
     actor, card = antmaze_collect.load_policy(zoo_root)
     num_envs = antmaze_collect.NUM_ENVS
-    dataset, controller = antmaze_collect.make_dataset(name, kind, size, seed, actor, num_envs)
+    if workers == 1:
+        dataset, controller = antmaze_collect.make_dataset(name, kind, size, seed, actor, num_envs)
+    else:
+        maze, family = antmaze_collect.dataset_family(kind)
+        episodes = antmaze_collect.episodes_for(kind, size)
+        policy = antmaze_collect.policy_path(zoo_root)
+        data = parallel.collect_antmaze(
+            maze, family, episodes, seed, policy, num_envs, workers, desc=name
+        )
+        dataset, controller = antmaze_collect.relabelled(name, kind, size, data, num_envs)
     env = tasks.env_info(("antmaze", kind))
     metadata = {
         "recipe": RECIPES["antmaze"],
@@ -226,40 +236,115 @@ def _make_antmaze(name: str, kind: str, path, seed: int, size: int, zoo_root) ->
     return save_hdf5(dataset, path)
 
 
-def _medium_replay(env_name: str, size: int, seed: int, zoo_root) -> tuple[Dataset, list[dict]]:
-    """Every training phase's share of ``size`` transitions, rolled out with its own policy."""
+def rollouts(name: str, seed: int, size: int, zoo_root=None) -> list[parallel.Rollout]:
+    """The rollouts the MuJoCo dataset ``name`` (not medium-expert: its parts are the medium and
+    expert datasets) is made of, in order: one, or medium-replay's one per training phase."""
+    from eabc.data import zoo  # noqa: PLC0415
+
+    env_name, kind = tasks.parse_task(name)
+    env_id = tasks.ENVS[env_name].env_id
+    if kind == "random":
+        return [parallel.Rollout(env_id, None, size, seed, desc=name)]
+    if kind in ("medium", "expert"):
+        policy = str(zoo.policy_path(env_name, kind, zoo_root))
+        return [parallel.Rollout(env_id, policy, size, seed, desc=name)]
+    if kind != "medium-replay":
+        raise DatasetError(f"{name} is not made by rollouts of its own")
+    phases = zoo.replay_schedule(env_name, zoo_root)
+    specs = []
+    for i, ((_, _, policy), count) in enumerate(zip(phases, _replay_counts(phases, size))):
+        if count:
+            path = None if policy is None else str(zoo.policy_path(env_name, policy, zoo_root))
+            desc = f"{env_name}-medium-replay {i + 1}/{len(phases)}"
+            specs.append(parallel.Rollout(env_id, path, count, seed + i, desc=desc))
+    return specs
+
+
+def _replay_counts(phases: list, size: int) -> list[int]:
+    """Every training phase's share of ``size`` transitions, in proportion to its length."""
+    total = phases[-1][1]
+    bounds = np.round(np.cumsum([0] + [stop - start for start, stop, _ in phases]) * size / total)
+    return [int(hi - lo) for lo, hi in zip(bounds[:-1], bounds[1:])]
+
+
+def _replay_phases(env_name: str, size: int, zoo_root) -> list[dict]:
+    """medium-replay's phases as its metadata describes them."""
     from eabc.data import zoo  # noqa: PLC0415
 
     phases = zoo.replay_schedule(env_name, zoo_root)
-    total = phases[-1][1]
-    bounds = np.round(np.cumsum([0] + [stop - start for start, stop, _ in phases]) * size / total)
-    parts, described = [], []
-    for i, ((start, stop, policy), lo, hi) in enumerate(zip(phases, bounds[:-1], bounds[1:])):
-        count = int(hi - lo)
-        if count == 0:
+    return [
+        {"policy": policy or "uniform random", "train_steps": [start, stop], "transitions": count}
+        for (start, stop, policy), count in zip(phases, _replay_counts(phases, size))
+        if count
+    ]
+
+
+def _rollouts(specs: list[parallel.Rollout], workers: int, desc: str) -> list[Dataset]:
+    """The rollouts ``specs``, made by ``workers`` processes where :mod:`eabc.data.parallel` can,
+    else by this one: the same rows either way."""
+    made = parallel.make_rollouts(specs, workers, desc) if workers > 1 else [None] * len(specs)
+    datasets = []
+    for spec, rows in zip(specs, made):
+        if rows is None:
+            datasets.append(_one_process(spec))
             continue
-        act = (
-            None
-            if policy is None
-            else zoo.sampler(zoo.load_actor(zoo.policy_path(env_name, policy, zoo_root)))
-        )
-        env_id = tasks.ENVS[env_name].env_id
-        parts.append(
-            rollout(
-                env_id, act, count, seed + i, desc=f"{env_name}-medium-replay {i + 1}/{len(phases)}"
-            )
-        )
-        described.append(
-            {
-                "policy": policy or "uniform random",
-                "train_steps": [start, stop],
-                "transitions": count,
-            }
-        )
-    return concatenate(parts, f"{env_name}-medium-replay"), described
+        if not (rows["terminals"][-1] or rows["timeouts"][-1]):
+            rows["timeouts"][-1] = True
+        datasets.append(Dataset(**rows, name=spec.desc, env_id=spec.env_id))
+    return datasets
 
 
-def _load_or_make_part(path: Path, size: int, seed: int, zoo_root) -> Dataset:
+def _one_process(spec: parallel.Rollout) -> Dataset:
+    act = parallel.action_fn(spec.policy)
+    return rollout(spec.env_id, act, spec.size, spec.seed, spec.max_episode_steps, spec.desc)
+
+
+def episode_starts(path: str | os.PathLike, zoo_root=None, spacing: int = parallel.SPACING) -> dict:
+    """:data:`eabc.data.parallel.TABLE`'s entries for the rollouts of the dataset file ``path``
+    (made by one process with the present zoo): an episode start every ~``spacing`` rows."""
+    data = load_file(path)
+    if not is_current(path, data.name, zoo_root):
+        raise DatasetError(f"{path} was not made from the present zoo: its starts would not fit")
+    seed = data.metadata["seed"]
+    entries, lo = {}, 0
+    for spec in rollouts(data.name, seed, data.size, zoo_root):
+        ends = data.terminals[lo : lo + spec.size - 1] | data.timeouts[lo : lo + spec.size - 1]
+        rows = np.flatnonzero(ends) + 1  # every episode start but row 0; its episode: the index
+        starts, wanted = [], spacing
+        for episode, row in enumerate(rows, start=1):
+            if row >= wanted:
+                starts.append([int(row), episode])
+                wanted = (row // spacing + 1) * spacing
+        entries[spec.key()] = {"transitions": spec.size, "starts": starts}
+        lo += spec.size
+    return entries
+
+
+def add_episode_starts(
+    paths: list[str | os.PathLike], table: Path | None = None, spacing: int = parallel.SPACING
+) -> Path:
+    """Add the episode starts of the dataset files ``paths`` to the table (made if missing); how
+    the shipped one is made: ``python -c "from eabc.data import generate;
+    generate.add_episode_starts(['PATH/hopper-medium.hdf5', ...])"``."""
+    table = parallel.TABLE if table is None else Path(table)
+    content = json.loads(table.read_text()) if table.exists() else {
+        "what": "episode starts [row, episode] of the rollouts that make the built-in MuJoCo "
+        "datasets, by environment, policy file digest and seed (eabc.data.parallel)",
+        "rollouts": {},
+    }  # fmt: skip
+    for path in paths:
+        content["rollouts"].update(episode_starts(path, spacing=spacing))
+    rollouts = ",\n".join(  # a rollout a line
+        f"  {json.dumps(key)}: {json.dumps(entry)}"
+        for key, entry in sorted(content["rollouts"].items())
+    )
+    table.write_text(
+        f'{{"what": {json.dumps(content["what"])},\n"rollouts": {{\n{rollouts}\n}}}}\n'
+    )
+    return table
+
+
+def _load_or_make_part(path: Path, size: int, seed: int, zoo_root, workers: int) -> Dataset:
     """A part of medium-expert: the cached dataset if it was made with this seed and size."""
     if is_current(path, path.stem, zoo_root):
         cached = load_file(path)
@@ -267,7 +352,7 @@ def _load_or_make_part(path: Path, size: int, seed: int, zoo_root) -> Dataset:
             return cached
     tmp = path.with_name(f".{path.stem}-part-{seed}-{size}.hdf5")
     try:
-        return load_file(make(path.stem, tmp, seed=seed, size=size, zoo_root=zoo_root))
+        return load_file(make(path.stem, tmp, seed, size, zoo_root, workers))
     finally:
         tmp.unlink(missing_ok=True)
 
@@ -288,33 +373,14 @@ def rollout(
     Episodes end at a terminal or after ``max_episode_steps`` (a timeout); the last transition is
     flagged as a timeout when the budget cuts an episode short. Deterministic for a given seed.
     """
-    import gymnasium as gym  # noqa: PLC0415
-
-    warnings.filterwarnings("ignore", message=r".*is out of date", category=DeprecationWarning)
-
-    env = gym.make(env_id, max_episode_steps=max_episode_steps)
+    env = parallel.make_env(env_id, max_episode_steps)
     rng = np.random.default_rng(seed)
-    low, high = env.action_space.low, env.action_space.high
-    obs_dim = env.observation_space.shape[0]
-    out = {
-        "observations": np.empty((num_transitions, obs_dim), np.float32),
-        "actions": np.empty((num_transitions, len(low)), np.float32),
-        "rewards": np.empty(num_transitions, np.float32),
-        "next_observations": np.empty((num_transitions, obs_dim), np.float32),
-        "terminals": np.zeros(num_transitions, bool),
-        "timeouts": np.zeros(num_transitions, bool),
-    }
+    out = parallel.empty_rows(env, num_transitions)
     obs, _ = env.reset(seed=seed)
     bar = tqdm(
         range(num_transitions), desc=desc, unit="step", mininterval=1.0, leave=False, disable=None
-    )
-    for i in bar:  # disable=None: no bar when the output is not a terminal (logs, CI)
-        action = rng.uniform(low, high) if act is None else act(obs, rng)
-        next_obs, reward, terminated, truncated, _ = env.step(action)
-        out["observations"][i], out["actions"][i], out["rewards"][i] = obs, action, reward
-        out["next_observations"][i] = next_obs
-        out["terminals"][i], out["timeouts"][i] = terminated, truncated and not terminated
-        obs = env.reset()[0] if terminated or truncated else next_obs
+    )  # disable=None: no bar when the output is not a terminal (logs, CI)
+    parallel.step_rows(env, act, rng, obs, out, bar, num_transitions)
     if not (out["terminals"][-1] or out["timeouts"][-1]):
         out["timeouts"][-1] = True
     env.close()
@@ -327,22 +393,47 @@ def save_hdf5(dataset: Dataset, path: str | os.PathLike) -> Path:
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    _remove_orphans(path)
     tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")  # two makers never share a file
-    with h5py.File(tmp, "w") as f:
-        for key in _ARRAYS:
-            f.create_dataset(
-                key, data=getattr(dataset, key), compression="gzip", compression_opts=1
-            )
-        f.attrs["name"] = dataset.name
-        f.attrs["env_id"] = dataset.env_id or ""
-        if dataset.ref_min_score is not None:
-            f.attrs["ref_min_score"] = dataset.ref_min_score
-            f.attrs["ref_max_score"] = dataset.ref_max_score
-        if dataset.reward_offset is not None:
-            f.attrs["reward_offset"] = dataset.reward_offset
-        f.attrs["metadata"] = json.dumps(dataset.metadata)
-    os.replace(tmp, path)
+    try:
+        with h5py.File(tmp, "w") as f:
+            for key in _ARRAYS:
+                f.create_dataset(
+                    key, data=getattr(dataset, key), compression="gzip", compression_opts=1
+                )
+            f.attrs["name"] = dataset.name
+            f.attrs["env_id"] = dataset.env_id or ""
+            if dataset.ref_min_score is not None:
+                f.attrs["ref_min_score"] = dataset.ref_min_score
+                f.attrs["ref_max_score"] = dataset.ref_max_score
+            if dataset.reward_offset is not None:
+                f.attrs["reward_offset"] = dataset.reward_offset
+            f.attrs["metadata"] = json.dumps(dataset.metadata)
+        os.replace(tmp, path)
+    except BaseException:  # interrupted (Ctrl-C, a terminate signal) or failed: no half file
+        tmp.unlink(missing_ok=True)
+        raise
     return path
+
+
+def _remove_orphans(path: Path, quiet_s: float = 60.0) -> None:
+    """Remove temporary files of ``path`` left by makers killed outright (no chance to clean up):
+    their process is gone from this machine and they have not changed for ``quiet_s`` seconds
+    (a maker on another machine sharing the cache keeps writing to its own)."""
+    for tmp in path.parent.glob(f"{path.name}.*.tmp"):
+        pid = tmp.name.removeprefix(f"{path.name}.").removesuffix(".tmp")
+        if not pid.isdigit():
+            continue
+        try:
+            os.kill(int(pid), 0)
+            continue  # alive
+        except ProcessLookupError:
+            pass
+        except PermissionError:
+            continue  # alive, another user's
+        with contextlib.suppress(FileNotFoundError):
+            if time.time() - tmp.stat().st_mtime > quiet_s:
+                tmp.unlink()
 
 
 def d4rl_level(name: str) -> float | None:

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from eabc import networks
+from eabc import numpy_networks
 from eabc.data import tasks
 from eabc.data.dataset import DatasetError
 
@@ -73,7 +73,7 @@ def policy_path(env: str, which: str, root=None) -> Path:
 
 def sampler(actor: dict[str, np.ndarray], max_action: float = 1.0) -> Callable:
     """``act(obs, rng)``: actions sampled from the tanh-Gaussian policy, as the datasets use."""
-    return networks.numpy_gaussian_sampler(actor, max_action)
+    return numpy_networks.numpy_gaussian_sampler(actor, max_action)
 
 
 def replay_schedule(env: str, root=None) -> list[tuple[int, int, str | None]]:

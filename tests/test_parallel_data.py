@@ -1,0 +1,116 @@
+"""Datasets made by several processes (eabc.data.parallel) are the ones one process makes."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from eabc import cli
+from eabc.cli import main
+from eabc.data import antmaze_collect, generate, parallel
+from eabc.data.dataset import FIELDS
+from eabc.data.loaders import load_file
+
+
+def digest(path) -> str:
+    """SHA-256 of a dataset file's arrays, in D4RL's field order."""
+    data, sha = load_file(path), hashlib.sha256()
+    for field in FIELDS:
+        sha.update(np.ascontiguousarray(getattr(data, field)).tobytes())
+    return sha.hexdigest()
+
+
+@pytest.fixture
+def table(tmp_path, monkeypatch):
+    """An empty table of episode starts in place of the shipped one."""
+    path = tmp_path / "episode_starts.json"
+    monkeypatch.setattr(parallel, "TABLE", path)
+    return path
+
+
+def test_a_mujoco_dataset_made_by_two_processes_is_the_one_made_by_one(tmp_path, table, capfd):
+    """hopper-medium-replay: rollouts of uniform random actions (its first phase) and of sampled
+    policy actions, cut at episode starts read from the one-process file."""
+    name, size = "hopper-medium-replay", 3_000
+    one = generate.make(name, tmp_path / "one.hdf5", seed=0, size=size)
+    generate.add_episode_starts([one], table, spacing=60)
+    rollouts = json.loads(table.read_text())["rollouts"]
+    assert sum(len(entry["starts"]) for entry in rollouts.values()) >= 5
+    assert any(key.split()[1] == "uniform" and entry["starts"] for key, entry in rollouts.items())
+    capfd.readouterr()
+    two = generate.make(name, tmp_path / "two.hdf5", seed=0, size=size, workers=2)
+    assert "on 2 processes" in capfd.readouterr().err  # the pieces were made by the workers
+    assert digest(two) == digest(one)
+    assert load_file(two).metadata == load_file(one).metadata
+
+    # A start that is not one (an episode counted twice) is noticed; that rollout is made again.
+    key = next(k for k, entry in rollouts.items() if len(entry["starts"]) >= 2)
+    rollouts[key]["starts"][0][1] += 1
+    table.write_text(json.dumps({"rollouts": rollouts}))
+    again = generate.make(name, tmp_path / "again.hdf5", seed=0, size=size, workers=2)
+    assert "do not fit" in capfd.readouterr().err
+    assert digest(again) == digest(one)
+
+
+def test_an_antmaze_dataset_made_by_two_processes_is_the_one_made_by_one(tmp_path, monkeypatch):
+    monkeypatch.setattr(antmaze_collect, "NUM_ENVS", 2)  # 4 episodes: 2 batches, 2 pieces
+    name, size = "antmaze-umaze-diverse", 2_500
+    one = generate.make(name, tmp_path / "one.hdf5", seed=5, size=size)
+    two = generate.make(name, tmp_path / "two.hdf5", seed=5, size=size, workers=2)
+    assert digest(two) == digest(one)
+    assert load_file(two).metadata == load_file(one).metadata
+
+
+def test_a_rollout_the_table_does_not_know_is_made_by_one_process(tmp_path, table, capfd):
+    one = generate.make("hopper-random", tmp_path / "one.hdf5", seed=7, size=400)
+    two = generate.make("hopper-random", tmp_path / "two.hdf5", seed=7, size=400, workers=3)
+    assert "no episode starts of Hopper-v4 uniform seed 7 known" in capfd.readouterr().err
+    assert digest(two) == digest(one)
+
+
+def test_the_shipped_table_covers_the_first_datasets_of_the_queue():
+    """Whatever else it holds: the rollouts the GPU study makes first, at full size."""
+    rollouts = json.loads(parallel.TABLE.read_text())["rollouts"]
+    for name in ("hopper-medium", "halfcheetah-medium"):
+        (spec,) = generate.rollouts(name, 0, generate.default_size(name))
+        starts = rollouts[spec.key()]["starts"]
+        assert rollouts[spec.key()]["transitions"] == spec.size and len(starts) >= 90
+        rows = [row for row, _ in starts]
+        assert rows == sorted(rows) and np.diff(rows).max() < 2 * parallel.SPACING
+
+
+def test_workers_0_is_refused_in_one_line(tmp_path):
+    with pytest.raises(ValueError, match="--workers must be an integer >= 1, got 0") as error:
+        cli.parse(["data", "make", "hopper-random", "--workers", "0"])
+    assert "\n" not in str(error.value)
+    with pytest.raises(SystemExit) as exit_:
+        main(["data", "make", "hopper-random", "--workers", "0", "--cache-dir", str(tmp_path)])
+    assert exit_.value.code == f"error: {error.value}"
+    assert not any(tmp_path.rglob("*.hdf5*"))
+
+
+def test_an_interrupted_write_leaves_no_temporary_file(tmp_path, monkeypatch):
+    data = load_file(generate.make("hopper-random", tmp_path / "d.hdf5", seed=0, size=50))
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as patch:
+        patch.setattr("h5py.Group.create_dataset", interrupted)
+        with pytest.raises(KeyboardInterrupt):
+            generate.save_hdf5(data, tmp_path / "e.hdf5")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d.hdf5"]
+    # One killed outright (no cleanup possible) is removed by the next write of that file.
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True, check=True).stdout.strip()  # fmt: skip
+    orphan = tmp_path / f"e.hdf5.{dead}.tmp"
+    orphan.write_bytes(b"half")
+    os.utime(orphan, (0, 0))
+    generate.save_hdf5(data, tmp_path / "e.hdf5")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d.hdf5", "e.hdf5"]
