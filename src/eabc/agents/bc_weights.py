@@ -2,8 +2,9 @@
 not recommended (docs/results/screen/README.md, docs/notes/eabc-divergence.md); kept so that
 their results can be reproduced:
 
-- ``bc_weight = quantile``, the authors' earlier rule (SPEC section 5): ``w = 1`` where the
-  q-quantile of the K values ``Q_k(s, a)`` exceeds ``m + s / sqrt(K)``;
+- ``bc_weight = quantile``, the authors' earlier rule
+  (docs/algorithm.md#the-authors-earlier-bc-rule): ``w = 1`` where the q-quantile of the K
+  values ``Q_k(s, a)`` exceeds ``m + s / sqrt(K)``;
 - ``bc_weight = auto``: ``w ~ Bernoulli(p_t)`` with ``p_t`` adapted during training by offline
   signals only, never by evaluation returns (:func:`adapt_confidence_level`).
 
@@ -38,10 +39,11 @@ def initial_controller(config: Any) -> dict[str, jax.Array]:
 
 
 def quantile_keep(critic, batch: Batch, config: Any) -> jax.Array:
-    """The authors' earlier BC weight (SPEC section 5): ``w = 1`` where the q-quantile of the K
-    online values at the batch's own actions exceeds ``mean + std / sqrt(K)`` (ddof 1)."""
+    """The authors' earlier BC weight (docs/algorithm.md#the-authors-earlier-bc-rule):
+    ``w = 1`` where the q-quantile of the K online values at the batch's own actions exceeds
+    ``mean + std / sqrt(K)`` (ddof 1)."""
     if config.quantile_level is None:
-        raise ValueError("bc_weight quantile needs quantile_level q (SPEC section 5's table)")
+        raise ValueError("bc_weight quantile needs quantile_level q (its table: docs/algorithm.md)")
     q = jax.lax.stop_gradient(networks.critic_apply(critic, batch.observations, batch.actions))
     upper = jnp.quantile(q, config.quantile_level, axis=0)  # linear, as torch.quantile
     k = q.shape[0]

@@ -10,7 +10,7 @@ One call of :func:`update` is one gradient step ``t`` on a mini-batch ``(s, a, r
    ``lambda = alpha / mean|P|`` (no gradient) and ``w ~ Bernoulli(p)`` per sample;
 5. then the actor and critic targets move by Polyak averaging.
 
-``../shared/SPEC.md`` section 1 is the specification this file follows line by line; with every
+docs/algorithm.md#the-update is the specification this file follows line by line; with every
 setting at its default the rule is exactly that (published EABC). The settings below it are the
 variants the study screened (docs/results/screen/README.md), each a switch of this one rule:
 
@@ -94,10 +94,10 @@ class EABCConfig:
     pess(...) target; pessimism then acts through the actor's value only."""
     bc_weight: BCWeight = "bernoulli"
     """Per-sample BC weight: bernoulli (w ~ Bernoulli(p), the paper), quantile (the authors'
-    earlier ensemble rule, SPEC section 5), auto (Bernoulli(p_t), p_t adapted; see below) or
-    advantage (w = 1 where pess Q(s, a) >= pess Q(s, pi(s)); no p)."""
+    earlier ensemble rule, docs/algorithm.md#the-authors-earlier-bc-rule), auto (Bernoulli(p_t),
+    p_t adapted; see below) or advantage (w = 1 where pess Q(s, a) >= pess Q(s, pi(s)); no p)."""
     quantile_level: float | None = None
-    """q of the quantile rule; None: SPEC section 5's table for the dataset."""
+    """q of the quantile rule; None: the authors' q for the dataset (docs/algorithm.md)."""
     auto_initial_p: float = 1.0
     """auto: p at step 0 (start as TD3+BC, relax where the evidence allows)."""
     auto_min_p: float = 0.0
@@ -182,7 +182,8 @@ PRESETS: dict[str, EABCConfig] = {
         actor_uses_ensemble=False,
         behavior_cloning=False,
     ),
-    # The authors' earlier rule (SPEC section 5): BC switched per sample by the ensemble, q per dataset.
+    # The authors' earlier rule: BC switched per sample by the ensemble, q per dataset
+    # (docs/algorithm.md#the-authors-earlier-bc-rule).
     "eabc-quantile": EABCConfig(bc_weight="quantile"),
     # EABC with p adapted during training from offline signals (no per-dataset p).
     "eabc-auto": EABCConfig(bc_weight="auto"),
@@ -440,14 +441,14 @@ def update(
 
 
 def resolve(config: EABCConfig, dataset_name: str, steps: int, given: frozenset[str]):
-    """Table 3's p (bc_weight bernoulli) and SPEC section 5's q (bc_weight quantile) for the
+    """Table 3's p (bc_weight bernoulli) and the authors' earlier q (bc_weight quantile) for the
     dataset, where they are unset."""
     task = tasks.parse_task(dataset_name)
     if config.bc_weight == "quantile" and config.quantile_level is None:
         q = tasks.default_quantile_level(task)
         if q is None:
             raise ValueError(
-                f"no default quantile level q for dataset {dataset_name!r} (SPEC section 5's "
+                f"no default quantile level q for dataset {dataset_name!r} (the authors' "
                 "table covers hopper/halfcheetah/walker2d x the five kinds); pass --set "
                 "quantile_level=Q"
             )

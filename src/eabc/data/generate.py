@@ -437,7 +437,7 @@ def _remove_orphans(path: Path, quiet_s: float = 60.0) -> None:
 
 
 def d4rl_level(name: str) -> float | None:
-    """The mean normalised return of D4RL's dataset of this name (SPEC section 3)."""
+    """The mean normalised return of D4RL's dataset of this name (docs/algorithm.md#datasets)."""
     from eabc.data import zoo  # noqa: PLC0415
 
     task = tasks.parse_task(name)

@@ -66,7 +66,8 @@ CONFIDENCE_LEVEL: dict[tuple[str, str], float] = {
     ("antmaze", "large-diverse"): 1.0,
 }
 
-# SPEC section 5: q of the authors' earlier quantile BC rule per (environment, dataset kind).
+# q of the authors' earlier quantile BC rule per (environment, dataset kind)
+# (docs/algorithm.md#the-authors-earlier-bc-rule).
 QUANTILE_LEVEL: dict[tuple[str, str], float] = {
     ("halfcheetah", "expert"): 1.0,
     ("hopper", "expert"): 0.9,

@@ -32,7 +32,7 @@ WEIGHT_DTYPE = np.float16
 measured with exactly these weights)."""
 
 D4RL_LEVEL = {
-    # Mean normalised return of D4RL's datasets (../shared/SPEC.md section 3).
+    # Mean normalised return of D4RL's datasets (docs/algorithm.md#datasets).
     "medium": {"hopper": 44.0, "halfcheetah": 41.0, "walker2d": 62.0},
     "expert": {"hopper": 108.0, "halfcheetah": 88.0, "walker2d": 107.0},
     "random": {"hopper": 1.0, "halfcheetah": 0.0, "walker2d": 0.0},
