@@ -55,7 +55,7 @@ LONGEST_FIRST = (
     "test_sac.py", "test_contract_more.py", "test_eabc_variants.py", "test_training.py",
     "test_faults.py", "test_rebrac.py", "test_zoo.py", "test_contract.py", "test_bc_wpc.py",
 )  # fmt: skip
-"""The modules that take longest (CPU time of each alone, 2026-12-04), run first. pytest-xdist
+"""The modules that take longest (by the CPU time each takes alone), run first. pytest-xdist
 hands each worker one module at a time in collection order (pyproject.toml turns off its own
 order, by number of tests, which started test_experiments' 4 tests, a minute, near the end), so
 the long ones start early and the two workers end together: about 25 s less than xdist's order

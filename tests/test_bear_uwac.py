@@ -440,8 +440,8 @@ def test_uwac_update_moves_the_spectral_vectors_and_is_deterministic(batch):
 
 # Pendulum's 3,000-step check: 64-64 networks and the warm-up (20K/40K steps of MMD-only training
 # in the authors' settings) shortened to 500 steps. For UWAC also: 4 dropout passes and 4 target
-# actions instead of 100 and 10 (the MC estimate dominates its cost: 630 s with 10 and 10 on the
-# busy 2-core machine), and the actor's lr 1e-3 (BEAR's) without spectral norm: with the
+# actions instead of 100 and 10 (the MC estimate dominates its cost: 630 s with 10 and 10 on two
+# busy cores), and the actor's lr 1e-3 (BEAR's) without spectral norm: with the
 # authors' 1e-4 and spectral norm the critics grow so slowly (mean Q -4 after 2,800 steps)
 # that 3,000 steps score at the untrained level (-21 vs -18). Both train on batches of 128, not
 # 256, at about two thirds of the cost: UWAC gains as much over the untrained policy (seeds 0, 1,

@@ -158,7 +158,7 @@ PENDULUM = dict(
 
 def test_online_sac_learns_pendulum_and_keeps_snapshots(tmp_path):
     # SAC's own 256-256 networks on batches of 64, not 256: a third of the CPU time (20 s against
-    # 58 s on the busy 2-core host) and as good a policy (returns -1613, -1793, -1160, -253, -246
+    # 58 s on two busy cores) and as good a policy (returns -1613, -1793, -1160, -253, -246
     # at steps 1000-5000, against -1482, -1756, -1045, -493, -247); 64-64 networks on batches of
     # 256 stayed at -859 by step 5000.
     config = online.SACTrainConfig(**PENDULUM, steps=5000, batch_size=64)

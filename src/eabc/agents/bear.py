@@ -390,7 +390,7 @@ def step(state, batch: Batch, key, config: BEARConfig, max_action: float, critic
 
 
 ALGORITHMS = (
-    # steps/s: benchmarks/algorithms.py on a quiet 2-core Zen 5.
+    # steps/s: the reference host's (eabc.timing), by benchmarks/algorithms.py.
     Algorithm("bear", "BEAR", PRESETS["bear"], init, update, column=7, actor="tanh-gaussian",
               steps_per_s=42.8),
 )  # fmt: skip

@@ -79,8 +79,8 @@ class Algorithm:
     step_metrics: frozenset[str] = CRITIC_METRICS
     """Metrics averaged over every step of a chunk (see :data:`CRITIC_METRICS`)."""
     steps_per_s: float = 60.0
-    """A cost hint for sweeps: steps/s of the preset on one process of the 2-core reference
-    machine (``benchmarks/algorithms.py``: a quiet 2-core Zen 5, 2026-12-02), hopper's shapes."""
+    """A cost hint for sweeps: steps/s of the preset in one process of the reference host
+    (:data:`eabc.timing.REFERENCE_HOST`; ``benchmarks/algorithms.py``), hopper's shapes."""
     cost: Callable[[Any], float] | None = None
     """``cost(config)``: how many times slower than the preset these settings are (e.g. K / 10)."""
     pretrain_s: Callable[[Any], float] | None = None

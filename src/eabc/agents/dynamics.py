@@ -276,11 +276,11 @@ def _signature(key, size: int, obs_dim: int, act_dim: int, config: DynamicsConfi
 
 FIT_FLOPS_PER_S = 1.0e11
 """Training throughput of :func:`fit` (2 flops per multiply-add, forward and backward) on one
-core of the reference Zen 5 host, for the cost hint of :func:`fit_seconds`: MOPO's fit on
-hopper-medium ran 35 epochs in about 45 minutes there with two thirds of a core (2026-12-02),
-about 51 s per epoch of 5.3e12 flops on a whole core. A Zen 4 host took 188 s per epoch with
-two thirds of a core (about 125 s on a whole one, 2.4x slower, as for the training steps). Not a
-clean measurement: a hint."""
+core of the reference host (:data:`eabc.timing.REFERENCE_HOST`), for the cost hint of
+:func:`fit_seconds`: MOPO's fit on hopper-medium ran 35 epochs in about 45 minutes there with
+two thirds of a core, about 51 s per epoch of 5.3e12 flops on a whole core. A host 2.4x slower
+per training step was 2.4x slower per epoch too (125 s on a whole core), so the hint scales with
+the host's speed like the steps' estimates. Not a clean measurement: a hint."""
 TYPICAL_EPOCHS = 60
 """Epochs a fit runs when only the patience stops it (a guess for the cost hint: MOPO's fit on
 hopper-medium's 1M transitions ran past 35 epochs without stopping)."""

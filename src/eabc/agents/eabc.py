@@ -475,7 +475,7 @@ _FAMILY = {
     "report_settings": ("num_critics", "confidence_level", "pessimism"),
     "cli_flags": ("confidence_level", "num_critics", "pessimism", "alpha"),
 }
-# steps/s: benchmarks/algorithms.py on a quiet 2-core Zen 5 (2026-12-02), hopper shapes.
+# steps/s: the reference host's (eabc.timing), by benchmarks/algorithms.py, hopper shapes.
 ALGORITHMS = (
     Algorithm("eabc", "EABC", PRESETS["eabc"], init, update, column=13, steps_per_s=151.0,
               cost=_ensemble_cost(10), **_FAMILY),

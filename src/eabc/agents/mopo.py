@@ -130,8 +130,8 @@ PRESETS: dict[str, MOPOConfig] = {"mopo": MOPOConfig()}
 
 TASK_SETTINGS: dict[tuple[str, str], dict[str, float]] = {
     # examples/config/d4rl/<env>_<kind>.py of tianheyu927/mopo: rollout_length and penalty_coeff
-    # ("mixed" is D4RL's medium-replay). All twelve checked against the files at commit 3d632fc
-    # (2026-12-02; halfcheetah-medium-expert's penalty is 5.0 there, 1.0 here before).
+    # ("mixed" is D4RL's medium-replay). All twelve as in the files at commit 3d632fc (note
+    # halfcheetah-medium-expert's penalty, 5.0).
     ("halfcheetah", "random"): {"rollout_length": 5, "penalty_coeff": 0.5},
     ("halfcheetah", "medium"): {"rollout_length": 1, "penalty_coeff": 1.0},
     ("halfcheetah", "medium-replay"): {"rollout_length": 5, "penalty_coeff": 1.0},
@@ -342,7 +342,7 @@ def _fit_seconds(config: MOPOConfig) -> float:
 
 
 ALGORITHMS = (
-    # steps/s: benchmarks/algorithms.py on a quiet 2-core Zen 5, excluding the one-off model fit.
+    # steps/s: the reference host's (eabc.timing), by benchmarks/algorithms.py, without the fit.
     # state_layout 2: the SAC state as one field
     Algorithm("mopo", "MOPO", PRESETS["mopo"], init, update, column=9, actor="tanh-gaussian",
               pretrain=pretrain, pretrain_s=_fit_seconds, resolve=resolve, steps_per_s=168.0, state_layout=2),

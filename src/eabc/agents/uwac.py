@@ -284,7 +284,8 @@ def _dropout_cost(config: UWACConfig) -> float:
 _FIXED_PASSES = (1 / 42.8) / ((1 / 3.2 - 1 / 42.8) / 100)  # BEAR's step in dropout passes, ~8.1
 
 ALGORITHMS = (
-    # steps/s: benchmarks/algorithms.py on a quiet 2-core Zen 5 (per-pass masks, T = 100).
+    # steps/s: the reference host's (eabc.timing), by benchmarks/algorithms.py (per-pass masks,
+    # T = 100).
     # state_layout 2: the BEAR state as one field
     Algorithm("uwac", "UWAC", PRESETS["uwac"], init, update, column=10, actor="tanh-gaussian",
               steps_per_s=3.2, cost=_dropout_cost, state_layout=2),

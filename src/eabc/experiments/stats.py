@@ -3,7 +3,7 @@
 Agarwal et al., 2021, "Deep RL at the edge of the statistical precipice" (the ``rliable`` library):
 the interquartile mean, stratified-bootstrap confidence intervals and performance profiles.
 
-Why not ``rliable`` itself (checked 2026-12-02 with its latest release, 1.2.0): it needs
+Why not ``rliable`` itself (its release 1.2.0): it needs
 ``arch < 8``, and arch 7.2 does not import under pandas 3 (``deprecate_kwarg()`` TypeError), while
 arch 8 breaks rliable's bootstrap (``random_state=None`` refused); it would also bring seaborn and
 absl, and it takes one score matrix of equal runs per task, where a sweep stopped early has ragged
