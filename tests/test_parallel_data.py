@@ -74,6 +74,18 @@ def test_a_rollout_the_table_does_not_know_is_made_by_one_process(tmp_path, tabl
     assert digest(two) == digest(one)
 
 
+def test_the_table_keeps_the_longest_rollout_it_is_given(tmp_path, table):
+    """hopper-random and medium-replay's warm-up share a rollout (uniform actions, seed 0): a
+    shorter one's starts are the longer one's first starts, and the table keeps the longer."""
+    short = generate.make("hopper-random", tmp_path / "short.hdf5", seed=0, size=300)
+    long = generate.make("hopper-random", tmp_path / "long.hdf5", seed=0, size=900)
+    generate.add_episode_starts([long, short], table, spacing=100)
+    entry = json.loads(table.read_text())["rollouts"]["Hopper-v4 uniform seed 0"]
+    first = generate.episode_starts(short, spacing=100)["Hopper-v4 uniform seed 0"]["starts"]
+    assert entry["transitions"] == 900 and len(entry["starts"]) > len(first) >= 2
+    assert entry["starts"][: len(first)] == first
+
+
 def test_the_shipped_table_covers_the_first_datasets_of_the_queue():
     """Whatever else it holds: the rollouts the GPU study makes first, at full size."""
     rollouts = json.loads(parallel.TABLE.read_text())["rollouts"]

@@ -333,7 +333,10 @@ def add_episode_starts(
         "rollouts": {},
     }  # fmt: skip
     for path in paths:
-        content["rollouts"].update(episode_starts(path, spacing=spacing))
+        for key, entry in episode_starts(path, spacing=spacing).items():
+            known = content["rollouts"].get(key, {"transitions": 0})
+            if entry["transitions"] > known["transitions"]:  # a rollout's prefix: the same starts
+                content["rollouts"][key] = entry
     rollouts = ",\n".join(  # a rollout a line
         f"  {json.dumps(key)}: {json.dumps(entry)}"
         for key, entry in sorted(content["rollouts"].items())
