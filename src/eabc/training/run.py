@@ -143,50 +143,6 @@ def resolve_agent_config(
     fields = algorithm.settings()
     unknown = set(overrides) - fields
     if unknown:
-def memory_needed(
-    config: TrainConfig, agent_config: Any, obs_dim: int, act_dim: int, size: int
-) -> list[tuple[str, str, str, float]]:
-    """What a run keeps in memory while it trains, by the flag that sizes it (at least this
-    much; XLA's temporaries come on top): the dataset on the device, one batch with the
-    activations of its networks' layers, and the agent's state (networks and optimisers)."""
-    algorithm = get_algorithm(config.algo)
-    row = 4 * (2 * obs_dim + act_dim * (2 if algorithm.next_actions else 1) + 2)
-    networks = 1 + getattr(agent_config, "num_critics", 1)  # the actor and each critic
-    hidden = sum(getattr(agent_config, "hidden_dims", ()) or ())
-    shapes = jax.eval_shape(
-        lambda key: algorithm.init(key, obs_dim, act_dim, agent_config), jax.random.PRNGKey(0)
-    )
-    state = sum(leaf.size * leaf.dtype.itemsize for leaf in jax.tree.leaves(shapes))
-    return [
-        ("--batch-size", str(config.batch_size), "a batch with its activations",
-         config.batch_size * (row + 4 * hidden * networks)),
-        ("--dataset", config.dataset, f"the data ({size:,} transitions)", size * row),
-        ("--set hidden_dims/num_critics", "", f"{config.algo}'s networks and optimisers", state),
-    ]  # fmt: skip
-
-
-def device_memory() -> int | None:
-    """Bytes free on the accelerator JAX trains on; None on the CPU (the machine's memory)."""
-    device = jax.local_devices()[0]
-    if device.platform == "cpu":
-        return None
-    stats = device.memory_stats() or {}
-    if "bytes_limit" not in stats:
-        return None
-    return stats["bytes_limit"] - stats.get("bytes_in_use", 0)
-
-
-def check_memory(
-    config: TrainConfig, agent_config: Any, obs_dim: int, act_dim: int, size: int
-) -> None:
-    """Refuse, before a run directory is written, a run whose batch, data and networks
-    (:func:`memory_needed`) would not fit in the memory free where it trains, naming the flag of
-    the largest part (``--batch-size``, ``--dataset``) in one line."""
-    ranges.check_memory(
-        memory_needed(config, agent_config, obs_dim, act_dim, size), device_memory()
-    )
-
-
         raise ValueError(f"{algo} has no setting(s) {sorted(unknown)}; it has {sorted(fields)}")
     config = validation.validate(algorithm.preset, algo, overrides)
     return algorithm.resolved(config, dataset_name, steps, set(overrides))
@@ -644,7 +600,7 @@ def prepared(algorithm: Algorithm, dataset: Dataset) -> Dataset:
 # One compiled program rather than dozens of eagerly compiled operations (and cacheable on disk).
 # It runs once, so LLVM's O1 is enough: the same parameters bit for bit as XLA's default O3
 # (tests/test_training.py), compiled in about half the time (6.6 -> 3.5 s for EABC's, 14 -> 7 s
-# for BEAR's on the busy 2-core AVX2 host). Its fusions come from XLA's older LLVM emitter, not
+# for BEAR's, on two busy cores). Its fusions come from XLA's older LLVM emitter, not
 # the MLIR fusion emitters: still the same bits for every algorithm, compiled in 38% less time
 # again (all 21 algorithms' inits at the contract checks' sizes: 40.8 -> 25.2 s of CPU).
 _init_agent = jax.jit(
