@@ -5,8 +5,10 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import signal
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -126,3 +128,30 @@ def test_an_interrupted_write_leaves_no_temporary_file(tmp_path, monkeypatch):
     os.utime(orphan, (0, 0))
     generate.save_hdf5(data, tmp_path / "e.hdf5")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["d.hdf5", "e.hdf5"]
+
+
+def test_a_make_killed_while_its_workers_run_stops_them_and_leaves_no_file(tmp_path):
+    """SIGTERM to ``eabc data make --workers 2`` (a job's time limit, ``kill``): the command ends
+    at once, its worker processes with it, and nothing is left in the cache."""
+    argv = ["data", "make", "hopper-random", "--size", "300000", "--workers", "2"]
+    maker = subprocess.Popen(
+        [sys.executable, "-c", "import sys; from eabc.cli import main; main(sys.argv[1:])", *argv,
+         "--cache-dir", str(tmp_path / "cache")],
+        stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    lines = []
+    for line in maker.stderr:  # the pieces are handed out: the workers are running
+        lines.append(line)
+        if "pieces on 2 processes" in line:
+            break
+    time.sleep(1.0)
+    workers = subprocess.run(["pgrep", "-P", str(maker.pid)], capture_output=True, text=True)
+    workers = [int(pid) for pid in workers.stdout.split()]
+    assert len(workers) >= 2, lines
+    maker.send_signal(signal.SIGTERM)
+    assert maker.wait(timeout=30) != 0
+    deadline = time.monotonic() + 10
+    while any(os.path.exists(f"/proc/{pid}") for pid in workers) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not [pid for pid in workers if os.path.exists(f"/proc/{pid}")]
+    assert not [p for p in tmp_path.rglob("*") if p.is_file()]

@@ -2,13 +2,10 @@
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import json
 import os
-import signal
 import sys
-import threading
 from pathlib import Path
 from typing import Annotated
 
@@ -156,8 +153,7 @@ def run_data(cmd: DataMake | DataInfo | DataList | DataExport) -> None:
                 print(f"{path} (cached; --force to remake)")
                 return
             print(f"{path} was made from older zoo policies; making it again", file=sys.stderr)
-        with _terminate_as_interrupt():  # a killed make removes its temporary file
-            print(generate.make(cmd.name, path, cmd.seed, cmd.size, workers=cmd.workers))
+        print(generate.make(cmd.name, path, cmd.seed, cmd.size, workers=cmd.workers))
     elif isinstance(cmd, DataList):
         header = f"{'dataset':26s} {'transitions':>11s} {'episodes':>8s} {'return':>17s} {'score':>6s} {'D4RL':>5s}  file"
         print(header)
@@ -208,25 +204,6 @@ def run_data(cmd: DataMake | DataInfo | DataList | DataExport) -> None:
             from eabc.data import antmaze_collect  # noqa: PLC0415
 
             print(antmaze_collect.plot_coverage(dataset, Path(cmd.plot).expanduser()))
-
-
-@contextlib.contextmanager
-def _terminate_as_interrupt():
-    """SIGTERM (``kill``, a job's time limit) and SIGHUP raise as Ctrl-C does meanwhile, so that
-    the cleanup on the way out (worker processes, a temporary file) runs."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def interrupt(signum, frame):
-        raise KeyboardInterrupt(signal.Signals(signum).name)
-
-    saved = {sig: signal.signal(sig, interrupt) for sig in (signal.SIGTERM, signal.SIGHUP)}
-    try:
-        yield
-    finally:
-        for sig, handler in saved.items():
-            signal.signal(sig, handler)
 
 
 def _number(value: float | None, width: int, spec: str) -> str:

@@ -297,6 +297,9 @@ class Pool:
         return self
 
     def __exit__(self, kind, error, trace) -> None:
+        if kind is not None:  # an error, Ctrl-C or a kill: no piece is worth finishing
+            for process in list(getattr(self.executor, "_processes", {}).values()):
+                process.terminate()  # the executor has no public way to stop running work
         self.executor.shutdown(wait=kind is None, cancel_futures=kind is not None)
         self.bar.close()
         if kind is None:
