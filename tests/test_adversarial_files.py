@@ -16,23 +16,28 @@ The run is a TD3+BC run's initial checkpoint on 40 transitions: no training.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
+import io
 import json
 import math
 import os
 import shutil
+import tempfile
+import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, settings
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from eabc import load_policy, pytree
 from eabc.cli import main
 from eabc.data.dataset import DatasetError
 from eabc.data.loaders import load_file
 from eabc.experiments import results
-from eabc.training import checkpoint, trainer
+from eabc.training import checkpoint, run_config, trainer
 from eabc.training.trainer import TrainConfig
 
 SETTINGS = settings(
@@ -284,3 +289,312 @@ def test_a_junk_file_in_the_cache_does_not_stop_data_list(tmp_path, monkeypatch,
     assert "unreadable" in row and "eabc data make hopper-random --force" in row
     assert any(line.startswith("walker2d-random ") for line in out.splitlines())
     assert len(out.splitlines()) > 10  # every built-in dataset is listed
+
+
+# ----------------------------------------------------------------------------------------------
+# Generated: every value of every file, each one refused or used as it is
+
+
+def one_line(error: BaseException | str, *names: str) -> str:
+    message = str(error)
+    assert message and "\n" not in message and "Traceback" not in message, message
+    assert any(name in message for name in names), (message, names)
+    return message
+
+
+@contextlib.contextmanager
+def scratch():
+    with tempfile.TemporaryDirectory(prefix="eabc-adversarial-files-") as folder:
+        yield Path(folder)
+
+
+def float_leaves(tree, prefix=""):
+    if isinstance(tree, dict):
+        for key, value in tree.items():
+            yield from float_leaves(value, f"{prefix}/{key}".lstrip("/"))
+    elif np.asarray(tree).dtype.kind == "f" and np.asarray(tree).size:
+        yield prefix
+
+
+def at(tree, where: str):
+    *parents, last = where.split("/")
+    for key in parents:
+        tree = tree[key]
+    return tree, last
+
+
+@settings(SETTINGS, max_examples=40)
+@given(choice=st.integers(0, 10**6), value=st.sampled_from([math.nan, math.inf, -math.inf]),
+       element=st.integers(0, 10**6))  # fmt: skip
+def test_any_non_finite_value_in_a_checkpoint_is_refused(started, choice, value, element):
+    """NaN or +-inf in any float of the agent's state or the normaliser (its checksum
+    recomputed), but in the running bounds that start infinite: refused in one line naming the
+    file by every reader."""
+    from eabc.training.checkpoint import INFINITE  # noqa: PLC0415
+
+    data = (started / checkpoint.CHECKPOINT).read_bytes()
+    raw = pytree.loads(data[:-40])
+    leaves = [f"agent/{p}" for p in float_leaves(raw["agent"])] + ["normalizer/mean",
+                                                                  "normalizer/std"]  # fmt: skip
+    where = leaves[choice % len(leaves)]
+    parent, key = at(raw, where)
+    array = np.array(parent[key])
+    array.reshape(-1)[element % array.size] = value
+    parent[key] = array
+    with scratch() as folder:
+        run_dir = folder / "run"
+        shutil.copytree(started, run_dir)
+        checkpoint.write_tree(run_dir / checkpoint.CHECKPOINT, raw)
+        if key in INFINITE and not math.isnan(value):
+            checkpoint.load_raw(run_dir)  # a bound that may be infinite
+            return
+        for read in (checkpoint.load_raw, load_policy):
+            with pytest.raises(checkpoint.CheckpointError) as error:
+                read(run_dir)
+            one_line(error.value, str(run_dir / checkpoint.CHECKPOINT))
+            assert where.split("/", 1)[1] in str(error.value) or where in str(error.value)
+
+
+CONFIG_VALUES = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True), st.integers(-5, 5), st.booleans(),
+    st.none(), st.text(max_size=3), st.lists(st.integers(), max_size=2), st.just({}),
+)  # fmt: skip
+
+
+@settings(SETTINGS, max_examples=80)
+@given(
+    key=st.sampled_from(
+        [
+            "run_id",
+            "train",
+            "agent",
+            "dataset",
+            "max_action",
+            "dataset.name",
+            "dataset.size",
+            "dataset.env_id",
+            "dataset.ref_min_score",
+            "dataset.ref_max_score",
+            "dataset.fingerprint",
+        ]
+    ),  # fmt: skip
+    action=st.sampled_from(["delete", "set"]),
+    value=CONFIG_VALUES,
+)
+def test_any_edit_of_a_config_key_is_used_as_is_or_refused_naming_the_file(
+    started, key, action, value
+):
+    """Each key of config.json deleted or set to any JSON value: load_policy either returns the
+    run's own policy (its actions within Pendulum's bound of 2) or refuses in one line naming
+    config.json; never a KeyError or a policy scaled by another bound."""
+    config = json.loads((started / checkpoint.CONFIG).read_text())
+    *parents, last = key.split(".")
+    inner = config
+    for part in parents:
+        inner = inner[part]
+    if action == "delete":
+        inner.pop(last, None)
+    else:
+        inner[last] = value
+    with scratch() as folder:
+        run_dir = folder / "run"
+        shutil.copytree(started, run_dir)
+        (run_dir / checkpoint.CONFIG).write_text(json.dumps(config))
+        try:
+            policy = load_policy(run_dir)
+        except ValueError as error:
+            one_line(error, str(run_dir))
+            return
+        actions = policy(np.random.default_rng(0).normal(size=(64, 3)).astype(np.float32))
+        assert np.isfinite(actions).all() and np.abs(actions).max() <= 2.0 + 1e-6
+        saved = run_config.read(run_dir)
+        assert saved.get("max_action") in (None, 2.0) and "agent" in saved
+
+
+REFERENCE = st.one_of(st.none(), st.floats(allow_nan=True, allow_infinity=True),
+                      st.sampled_from([0.0, 1.0, -1.0, 100.0]))  # fmt: skip
+
+
+@settings(SETTINGS, max_examples=80)
+@given(low=REFERENCE, high=REFERENCE)
+def test_any_reference_scores_load_in_order_or_are_refused_naming_them(low, high):
+    """A file's reference scores: loaded when both are finite with the random one below the
+    expert one (or when either is absent: returns only, or refused when a run starts), refused
+    in one line naming the file and ref_min_score otherwise."""
+    extra = {k: np.asarray(v) for k, v in (("ref_min_score", low), ("ref_max_score", high))
+             if v is not None}  # fmt: skip
+    with scratch() as folder:
+        path = folder / "d.npz"
+        np.savez(path, **tiny_arrays(), env_id=np.asarray("Pendulum-v1"), **extra)
+        given_ = [v for v in (low, high) if v is not None]
+        good = all(math.isfinite(v) for v in given_) and (len(given_) < 2 or low < high)
+        if good:
+            data = load_file(path)
+            assert (data.ref_min_score, data.ref_max_score) == (low, high)
+            return
+        with pytest.raises(DatasetError) as error:
+            load_file(path)
+        one_line(error.value, str(path))
+        assert "ref_min_score" in str(error.value) or "ref_max_score" in str(error.value)
+
+
+@settings(SETTINGS, max_examples=60)
+@given(timeouts=st.lists(st.booleans(), min_size=1, max_size=12),
+       terminals=st.lists(st.booleans(), min_size=12, max_size=12))  # fmt: skip
+def test_any_timeouts_load_or_are_refused_saying_why(timeouts, terminals):
+    """Any pattern of timeouts and terminals in a file without next observations: it loads
+    (each episode kept apart), or, when no row has a next observation, it is refused saying
+    so; never "empty" of a file with rows."""
+    rows = len(timeouts)
+    with scratch() as folder:
+        path = folder / "d.npz"
+        np.savez(path, **tiny_arrays(rows, terminals=np.asarray(terminals[:rows])),
+                 timeouts=np.asarray(timeouts))  # fmt: skip
+        if rows > 1 and not all(timeouts[:-1]):
+            assert load_file(path).size == sum(not t for t in timeouts[:-1])
+            return
+        with pytest.raises(DatasetError) as error:
+            load_file(path)
+        message = one_line(error.value, str(path))
+        assert "empty" not in message and ("timeout" in message or "one row" in message)
+
+
+MINARI_ID_PARTS = st.text(alphabet="ab1-_./~ ", min_size=0, max_size=6)
+
+
+@settings(SETTINGS, max_examples=150)
+@given(parts=st.lists(MINARI_ID_PARTS, min_size=1, max_size=4),
+       version=st.sampled_from(["", "-v0", "-v12", "-v", "v1", "-vx"]),
+       absolute=st.booleans())  # fmt: skip
+def test_any_minari_id_is_inside_the_minari_path_or_refused_before_anything(
+    parts, version, absolute
+):
+    """An export id (and a ``minari:`` id) of any characters: accepted only when it names a
+    folder inside the Minari path, ``NAME-vN``; refused in one line naming --dataset-id (or the
+    id) otherwise; nothing is made either way, outside the Minari path or in it."""
+    from eabc.data import loaders  # noqa: PLC0415
+
+    dataset_id = ("/" if absolute else "") + "/".join(parts) + version
+    with scratch() as folder:
+        root = folder / "minari" / "datasets"
+        old = os.environ.get("MINARI_DATASETS_PATH")
+        os.environ["MINARI_DATASETS_PATH"] = str(root)
+        try:
+            try:
+                loaders.check_export_target(dataset_id, overwrite=False)
+            except DatasetError as error:
+                one_line(error, "--dataset-id")
+            else:
+                assert loaders.MINARI_ID.fullmatch(dataset_id) and not absolute
+                assert (root / dataset_id).resolve().is_relative_to(root.resolve())
+                assert ".." not in dataset_id.split("/") and version.startswith("-v")
+            with pytest.raises(DatasetError) as error:  # nothing there to load
+                load_dataset_by_id(dataset_id)
+            one_line(error.value, dataset_id)
+        finally:
+            if old is None:
+                os.environ.pop("MINARI_DATASETS_PATH")
+            else:
+                os.environ["MINARI_DATASETS_PATH"] = old
+        assert sorted(p.name for p in folder.rglob("*")) == []  # nothing made
+
+
+def load_dataset_by_id(dataset_id: str):
+    from eabc.data.sources import load_dataset  # noqa: PLC0415
+
+    return load_dataset(f"minari:{dataset_id}")
+
+
+@pytest.fixture(scope="module")
+def minari_dataset(tmp_path_factory):
+    """A Minari path holding one intact Pendulum dataset (Minari's own writer)."""
+    import minari  # noqa: PLC0415
+    from minari.data_collector import EpisodeBuffer  # noqa: PLC0415
+
+    root = tmp_path_factory.mktemp("minari")
+    rng = np.random.default_rng(0)
+    episodes = [EpisodeBuffer(observations=rng.normal(size=(n + 1, 3)).astype(np.float32),
+                              actions=rng.uniform(-2, 2, (n, 1)).astype(np.float32),
+                              rewards=rng.normal(size=n), terminations=np.zeros(n, bool),
+                              truncations=np.r_[np.zeros(n - 1, bool), True])
+                for n in (5, 7)]  # fmt: skip
+    old = os.environ.get("MINARI_DATASETS_PATH")
+    os.environ["MINARI_DATASETS_PATH"] = str(root)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            minari.create_dataset_from_buffers("test/pendulum/tiny-v0", episodes,
+                                               env="Pendulum-v1")  # fmt: skip
+    finally:
+        if old is None:
+            os.environ.pop("MINARI_DATASETS_PATH")
+        else:
+            os.environ["MINARI_DATASETS_PATH"] = old
+    return root
+
+
+@settings(SETTINGS, max_examples=60)
+@given(file=st.sampled_from(["main_data.hdf5", "metadata.json"]),
+       keep=st.floats(0, 1), flips=st.lists(st.integers(0, 10**6), max_size=3))  # fmt: skip
+def test_any_damage_to_a_minari_folder_loads_the_same_data_or_names_the_file(
+    minari_dataset, monkeypatch, file, keep, flips
+):
+    """A Minari dataset's data file or metadata.json cut short anywhere or with bytes changed:
+    it loads the very same transitions (the damage missed what is read), or is refused in one
+    line naming the damaged dataset's folder; never "not in the local Minari path"."""
+    dataset_id = "test/pendulum/tiny-v0"
+    with scratch() as folder:
+        shutil.copytree(minari_dataset, folder / "m")
+        monkeypatch.setenv("MINARI_DATASETS_PATH", str(folder / "m"))
+        intact = load_dataset_by_id(dataset_id)
+        path = folder / "m" / dataset_id / "data" / file
+        data = bytearray(path.read_bytes())
+        for flip in flips:
+            data[flip % len(data)] ^= 0xFF
+        path.write_bytes(bytes(data[: max(0, round(keep * len(data)))]))
+        try:
+            loaded = load_dataset_by_id(dataset_id)
+        except DatasetError as error:
+            message = one_line(error, str(folder / "m" / dataset_id))
+            assert "not in the local Minari path" not in message and "damaged" in message
+            return
+        assert loaded.fingerprint() == intact.fingerprint()
+
+
+@settings(SETTINGS, max_examples=30)
+@given(length=st.integers(1, 251))
+def test_any_dataset_name_length_plans_or_is_refused_before_a_sweep_starts(length):
+    """A dataset file of any name length: the dry run plans it when its run's names fit the
+    file system, else refuses naming the file; the sweep's root is never made."""
+    with scratch() as folder:
+        path = folder / f"{'n' * length}.npz"
+        np.savez(path, **tiny_arrays(), env_id=np.asarray("Pendulum-v1"))
+        argv = ["sweep", "--datasets", str(path), "--algos", "td3bc", "--seeds", "0", "--steps",
+                "200", "--root", str(folder / "root"), "--dry-run"]  # fmt: skip
+        out = io.StringIO()
+        try:
+            with contextlib.redirect_stdout(out):
+                main(argv)
+        except SystemExit as exit_:
+            one_line(exit_.code, str(path))
+            assert length + 40 > 255  # a name of about that length, with its algorithm and seed
+        else:
+            run_name = next(line.split()[-1] for line in out.getvalue().splitlines()
+                            if line.strip().startswith("pending"))  # fmt: skip
+            assert len(f"{run_name}.log".encode()) <= 255
+        assert not (folder / "root").exists()
+
+
+@settings(SETTINGS, max_examples=25)
+@given(junk=st.binary(max_size=64), name=st.sampled_from(["hopper-random", "hopper-medium"]))
+def test_any_junk_in_the_cache_is_one_unreadable_row_of_data_list(monkeypatch, junk, name):
+    with scratch() as folder:
+        monkeypatch.setenv("EABC_CACHE_DIR", str(folder))
+        (folder / "datasets").mkdir()
+        (folder / "datasets" / f"{name}.hdf5").write_bytes(junk)
+        out = io.StringIO()
+        with contextlib.redirect_stdout(out):
+            main(["data", "list"])
+        rows = {line.split()[0]: line for line in out.getvalue().splitlines()[1:]}
+        assert "unreadable" in rows[name] and f"eabc data make {name} --force" in rows[name]
+        assert "(not made)" in rows["walker2d-random"]

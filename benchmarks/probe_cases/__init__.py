@@ -13,6 +13,7 @@ from probe_cases.malformed import malformed
 from probe_cases.reports import no_reference_scores
 from probe_cases.run_files import deleted_or_edited, foreign_files
 from probe_cases.shapes import wrong_shapes
+from probe_cases.tampered import tampered
 
 __all__ = ["all_cases", "make_base"]
 
@@ -20,4 +21,4 @@ __all__ = ["all_cases", "make_base"]
 def all_cases(base: Path) -> list[Case]:
     """Every case of the probe, class by class."""
     return [*foreign_files(base), *deleted_or_edited(base), *malformed(base), *too_late(base),
-            *wrong_shapes(base), *no_reference_scores(base)]  # fmt: skip
+            *wrong_shapes(base), *no_reference_scores(base), *tampered(base)]  # fmt: skip
