@@ -9,6 +9,7 @@ import re
 import pandas as pd
 import pytest
 
+from eabc import timing
 from eabc.agents import get_algorithm
 from eabc.cli import main
 from eabc.experiments import sweep
@@ -36,13 +37,13 @@ def _fake_run_dir(root, run: RunSpec, speeds: list[float]):
 def test_without_measurements_the_contract_hint_and_the_evaluations_set_the_cost():
     run = _run()
     algorithm = get_algorithm("td3bc")
-    expected = 20000 / algorithm.steps_per_s + 4 * 10 * sweep.EPISODE_SECONDS
+    expected = 20000 / algorithm.steps_per_s + 4 * 10 * timing.EPISODE_SECONDS
     assert sweep.estimate_seconds(run) == pytest.approx(expected)
     # Half the steps done: half the steps and half the evaluations left.
-    half = 10000 / algorithm.steps_per_s + 2 * 10 * sweep.EPISODE_SECONDS
+    half = 10000 / algorithm.steps_per_s + 2 * 10 * timing.EPISODE_SECONDS
     assert sweep.estimate_seconds(run, 10000) == pytest.approx(half)
     assert sweep.estimate_seconds(run, 10000, steps_per_s=50.0) == pytest.approx(
-        10000 / 50.0 + 2 * 10 * sweep.EPISODE_SECONDS
+        10000 / 50.0 + 2 * 10 * timing.EPISODE_SECONDS
     )
 
 
@@ -61,17 +62,17 @@ def test_speeds_measured_in_the_root_replace_the_hint_for_the_run_and_its_siblin
     # A sweep deciding what to start next sees the runs begun by others (not in its list).
     assert sweep.measured_speeds([sibling], tmp_path) == {sibling.run_id: pytest.approx(41.0)}
     (cost,) = sweep.job_estimates([[sibling]], tmp_path)
-    assert cost == pytest.approx(20000 / 41.0 + 4 * 10 * sweep.EPISODE_SECONDS)
+    assert cost == pytest.approx(20000 / 41.0 + 4 * 10 * timing.EPISODE_SECONDS)
     rows = {r["run"].run_id: r for r in sweep.plan(runs, tmp_path)}
     assert rows[sibling.run_id]["measured"] and not rows[other_setting.run_id]["measured"]
     assert rows[sibling.run_id]["seconds"] == pytest.approx(
-        20000 / 41.0 + 4 * 10 * sweep.EPISODE_SECONDS
+        20000 / 41.0 + 4 * 10 * timing.EPISODE_SECONDS
     )
     eabc = get_algorithm("eabc")
     config = dataclasses.replace(eabc.preset, num_critics=5)
     hint = eabc.steps_per_s / eabc.relative_cost(config)
     assert rows[other_setting.run_id]["seconds"] == pytest.approx(
-        20000 / hint + 4 * 10 * sweep.EPISODE_SECONDS
+        20000 / hint + 4 * 10 * timing.EPISODE_SECONDS
     )
 
 
@@ -96,7 +97,7 @@ def test_a_model_fit_is_counted_once_before_a_run_begins():
         assert fit > 60
         begun = sweep.estimate_seconds(run, 5000)  # one evaluation in, no fit left
         assert sweep.estimate_seconds(run) == pytest.approx(
-            begun + fit + 5000 / algorithm.steps_per_s + 10 * sweep.EPISODE_SECONDS
+            begun + fit + 5000 / algorithm.steps_per_s + 10 * timing.EPISODE_SECONDS
         )
     # A capped fit costs less than MOPO's (trained until the patience runs out).
     mopo = get_algorithm("mopo")
@@ -112,13 +113,13 @@ def test_the_dry_run_says_what_its_estimate_rests_on(tmp_path, capsys):
     )
     root = tmp_path / "root"
     main(["sweep", str(spec), "--root", str(root), "--dry-run"])
-    assert "the reference host's speeds" in capsys.readouterr().out
+    assert "at the reference host's speed (" in capsys.readouterr().out
     _fake_run_dir(root, _run(seed=0), [100.0, 100.0])
     main(["sweep", str(spec), "--root", str(root), "--dry-run"])
     out = capsys.readouterr().out
     assert "at speeds measured in the root" in out
     # Two runs of 20K steps at 100 steps/s (the second not begun), plus 80 evaluation episodes.
-    hours = (2 * 20000 / 100.0 + 2 * 40 * sweep.EPISODE_SECONDS) / 3600
+    hours = (2 * 20000 / 100.0 + 2 * 40 * timing.EPISODE_SECONDS) / 3600
     assert f"about {hours:.1f} CPU-core-hours" in out
 
 

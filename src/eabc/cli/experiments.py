@@ -11,7 +11,7 @@ from typing import Annotated, Literal
 
 import tyro
 
-from eabc import paths
+from eabc import paths, timing
 from eabc.cli.options import parse_value
 from eabc.experiments.presets import PRESETS as _SWEEP_PRESETS
 from eabc.ranges import NonNegativeNumber, Positive, PositiveNumber, Seed
@@ -213,22 +213,27 @@ def run_sweep(cmd: Sweep) -> None:
         if archived:
             print(f"{len(archived)} runs done in {', '.join(cmd.include)}: not run again")
         runs = [r for r in runs if r.run_id not in archived]
-    rows = sweep.plan(runs, root)
+    rows, speed = sweep.plan(runs, root), timing.REFERENCE
+    hinted = [r["seconds"] for r in rows if r["status"] != "done" and not r["measured"]]
+    if sum(hinted) > 10:  # long enough for this host's speed to matter: probe it
+        speed = timing.host_speed()
+        rows = sweep.plan(runs, root, speed)
     left = [r for r in rows if r["status"] != "done"]
     hours = sum(r["seconds"] for r in left) / 3600
     counts = {s: sum(r["status"] == s for r in rows) for s in ("done", "partial", "pending")}
     measured = sum(r["measured"] for r in left)
     basis = (
-        "the reference host's speeds (this host may differ 3x)"
+        speed.basis()
         if not measured
-        else "speeds measured in the root"
+        else "at speeds measured in the root"
         if measured == len(left)
-        else f"speeds measured in the root for {measured} of {len(left)}, the reference "
-        "host's for the rest"
+        else f"at speeds measured in the root for {measured} of {len(left)}, for the rest "
+        + speed.basis()
     )
     print(
         f"{len(rows)} runs in {root}: {counts['done']} done, {counts['partial']} partial, "
-        f"{counts['pending']} pending; about {hours:.1f} CPU-core-hours left at {basis}"
+        f"{counts['pending']} pending; about {hours:.1f} CPU-core-hours left {basis}",
+        flush=True,
     )
     found = sweep.problems(runs, root)
     for why in found["broken"]:  # one unreadable run does not stop the others
@@ -262,7 +267,7 @@ def run_sweep(cmd: Sweep) -> None:
             ]
             sweep.run_local(
                 job_list, root, cmd.workers, single_thread=layout == "processes",
-                deadline=deadline,
+                deadline=deadline, speed=speed,
                 taken=(lambda run: sweep.taken_elsewhere(run, others)) if others else None,
             )  # fmt: skip
     finally:

@@ -44,6 +44,23 @@ def _checked(options, config_class: type):
         raise ValueError(message) from None
 
 
+def quiet_unset_defaults(cls: type) -> type:
+    """``cls`` (a command's dataclass, and the dataclasses in its fields) without tyro's
+    ``(default: None)`` after an option whose default is None: its help says what unset means
+    (``default runs/DATASET_ALGO_seedS``, ``Unset: the preset's``), and None cannot be typed."""
+    hints = typing.get_type_hints(cls, include_extras=True)
+    own = dict(cls.__dict__.get("__annotations__", {}))
+    for field in dataclasses.fields(cls):
+        hint = hints[field.name]
+        inner = typing.get_args(hint)[0] if typing.get_origin(hint) is Annotated else hint
+        if dataclasses.is_dataclass(inner):
+            quiet_unset_defaults(inner)
+        elif field.default is None:
+            own[field.name] = Annotated[hint, tyro.conf.arg(help_behavior_hint="")]
+    cls.__annotations__ = own
+    return cls
+
+
 def check_flags(cmd) -> None:
     """Every flag of ``cmd`` whose type carries a range (:mod:`eabc.ranges`: ``Positive``,
     ``Seed``, ...) within it; ``ValueError`` naming the flag (``--episodes must be an integer >= 1,

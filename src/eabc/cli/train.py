@@ -22,7 +22,8 @@ class Train:
     agent: Annotated[AgentOverrides, tyro.conf.OmitArgPrefixes]
     set: tuple[str, ...] = ()
     """Any other setting of the algorithm as KEY=VALUE, e.g. eta=0.5, expectile=0.8,
-    hidden_dims=512,512 (the settings are listed in the README and in config.json of a run)."""
+    hidden_dims=512,512 (`eabc train --algo ALGO --dry-run` lists an algorithm's settings with
+    their values, as config.json of a run does)."""
     run_dir: str | None = None
     """Where the run's config, checkpoint, log.csv, TensorBoard events and curve.png go
     (default runs/DATASET_ALGO_seedS)."""
@@ -154,6 +155,8 @@ def train_plan(cmd: Train) -> dict[str, str]:
     """What ``cmd`` would do, every input checked as training checks it, nothing made or written:
     the dataset (loaded and validated if it is a file or already made), the algorithm's resolved
     settings, the schedule and an estimate of the time."""
+    from eabc import timing  # noqa: PLC0415
+    from eabc.agents import get_algorithm  # noqa: PLC0415
     from eabc.data import generate, sources  # noqa: PLC0415
     from eabc.experiments.spec import RunSpec  # noqa: PLC0415
     from eabc.experiments.sweep import estimate_seconds  # noqa: PLC0415
@@ -202,7 +205,12 @@ def train_plan(cmd: Train) -> dict[str, str]:
         config.dataset, config.algo, config.seed, tuple(sorted(overrides.items())),
         tuple((f, getattr(config, f)) for f in ("steps", "eval_interval", "eval_episodes")),
     )  # fmt: skip
-    seconds = estimate_seconds(spec, steps_done)
+    seconds, speed = estimate_seconds(spec, steps_done), timing.REFERENCE
+    if seconds > 10:  # long enough for this host's speed to matter: probe it
+        speed = timing.host_speed(config.cache_dir)
+        seconds = estimate_seconds(spec, steps_done, speed=speed)
+    algorithm = get_algorithm(config.algo)  # its update alone, as eabc report measures it
+    per_million = trainer.estimate_seconds(algorithm, agent_config, 1_000_000, 0, speed=speed)
     settings = dataclasses.asdict(agent_config)
     return {
         "run": what,
@@ -214,8 +222,8 @@ def train_plan(cmd: Train) -> dict[str, str]:
         f"({config.steps // config.eval_interval} evaluations), seed {config.seed} + 100",
         "schedule": f"{config.steps:,} steps of batch {config.batch_size}, a log row every "
         f"{config.log_interval:,}, a checkpoint every {config.checkpoint_interval:,}",
-        "estimate": f"about {_duration(seconds)} of training at the reference host's speed "
-        "(a 2-core Zen 5; up to 3x longer on an AVX2-only CPU)",
+        "estimate": f"about {timing.duration(seconds)} of training, "
+        f"{timing.duration(per_million)} per 1M gradient steps, {speed.basis()}",
     }
 
 
@@ -232,14 +240,6 @@ def _short(value) -> str:
     if isinstance(value, list | tuple):
         return ",".join(_short(v) for v in value)
     return str(value)
-
-
-def _duration(seconds: float) -> str:
-    if seconds < 90:
-        return f"{seconds:.0f} s"
-    if seconds < 5400:
-        return f"{seconds / 60:.0f} minutes"
-    return f"{seconds / 3600:.1f} hours"
 
 
 def run_evaluate(cmd: Evaluate) -> dict:

@@ -9,19 +9,34 @@ from __future__ import annotations
 
 import os
 
-from eabc import paths
+from eabc import paths, timing
 from eabc.data import generate, loaders, schema
 from eabc.data.dataset import Dataset, DatasetError
 
 
-def load_dataset(source: str | os.PathLike, cache_dir: str | os.PathLike | None = None) -> Dataset:
-    """Load a dataset from a path, a Minari id or a built-in name (see module docstring)."""
+def load_dataset(
+    source: str | os.PathLike, cache_dir: str | os.PathLike | None = None, make: bool = True
+) -> Dataset:
+    """Load a dataset from a path, a Minari id or a built-in name (see module docstring). A
+    built-in dataset not in the cache is made first; without ``make`` (commands that only
+    describe) it is refused, naming the command that makes it, and a cached one made from an
+    older zoo is read as it is."""
     text = str(source)
     path = paths.expand(text)
     if path.suffix in (".hdf5", ".h5", ".npz") or path.exists():
         return loaders.load_file(path)
     if text.startswith("minari:"):
         return loaders.load_minari(text.removeprefix("minari:"))
+    if text in generate.builtin_names() and not make:
+        cached = generate.dataset_path(text, cache_dir)
+        if not cached.exists():
+            speed = timing.host_speed(cache_dir, measure=False)  # a recent probe, if any
+            option = f" --cache-dir {cache_dir}" if cache_dir is not None else ""
+            raise FileNotFoundError(
+                f"{text} is not made yet (no {cached}); `eabc data make {text}{option}` makes "
+                f"it, {generate.making_time(text, speed=speed)}"
+            )
+        return loaders.load_file(cached)
     if text in generate.builtin_names():
         return generate.load_or_make(text, cache_dir=cache_dir)
     if "/" in text and loaders.has_minari(text):

@@ -10,11 +10,13 @@ from __future__ import annotations
 
 import html
 import re
+import time
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
+from eabc import progress, timing
 from eabc.agents.eabc import PUBLISHED, RECOMMENDED
 from eabc.experiments import compare
 from eabc.experiments.labels import ABLATION_PARAMETERS, display_name, labelled, paper_table
@@ -229,6 +231,8 @@ def write_report(
         paths[name] = out / name
         paths[name].write_text(text, encoding="utf-8")
 
+    started = time.perf_counter()
+    progress.say(f"report: {len(runs)} runs into {out}: tables")
     write("runs.csv", runs.drop(columns=["config"], errors="ignore").to_csv(index=False))
     write("evaluations.csv", evaluations.to_csv(index=False))
     scored, raw = reference_groups(runs)
@@ -270,6 +274,7 @@ def write_report(
             "D4RL-normalised scores over datasets (the optimality gap is 100 minus a score), and "
             "the returns of different environments are on different scales.\n"
         ]
+    progress.say("report: figures (learning curves, ablations, runtime)")
     paths["curves.png"] = figures.plot_learning_curves(
         main, evaluations, out / "curves.png", metric.curve, _axis(metric)
     )
@@ -373,6 +378,7 @@ def write_report(
     ]
     write("report.md", "\n".join(sections))
     write("report.html", report_page(sections, tables))
+    progress.say(f"report: done in {timing.duration(time.perf_counter() - started)}")
     return paths
 
 

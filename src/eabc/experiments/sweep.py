@@ -23,10 +23,11 @@ import time
 from pathlib import Path
 from typing import Any
 
-from eabc import compile_cache, paths
+from eabc import compile_cache, paths, timing
 from eabc.agents import get_algorithm
 from eabc.data import generate
 from eabc.experiments.spec import RunSpec, differences, groups, is_path
+from eabc.training import trainer
 from eabc.training.trainer import SUMMARY
 
 RUNS = "runs"
@@ -131,19 +132,25 @@ def problems(runs: list[RunSpec], root: Path) -> dict[str, list[str]]:
     return out
 
 
-def estimate_seconds(run: RunSpec, steps_done: int = 0, steps_per_s: float | None = None) -> float:
+def estimate_seconds(
+    run: RunSpec,
+    steps_done: int = 0,
+    steps_per_s: float | None = None,
+    speed: timing.HostSpeed = timing.REFERENCE,
+) -> float:
     """A rough cost of the remaining steps: at ``steps_per_s`` where it is known (measured in the
-    sweep root, :func:`measured_speeds`), else at the algorithm contract's hint (its preset's
-    steps/s on the 2-core reference host, scaled by its settings' relative cost); plus the
-    one-off pretraining (a model fit) of a run not begun, and the evaluations."""
+    sweep root, :func:`measured_speeds`), else at the algorithm contract's reference-host rate
+    scaled by its settings' relative cost and by this host's ``speed``; plus the one-off
+    pretraining (a model fit) of a run not begun, and the evaluations
+    (:func:`eabc.training.trainer.estimate_seconds`)."""
     algorithm = get_algorithm(run.algo)
     config = dataclasses.replace(algorithm.preset, **dict(run.overrides))
-    rate = steps_per_s or algorithm.steps_per_s / max(algorithm.relative_cost(config), 1e-9)
     train = run.train_config()
     left = max(train.steps - steps_done, 0)
     evaluations = left // train.eval_interval * train.eval_episodes
-    fit = algorithm.pretrain_s(config) if algorithm.pretrain_s and steps_done == 0 else 0.0
-    return left / rate + evaluations * EPISODE_SECONDS + fit
+    return trainer.estimate_seconds(
+        algorithm, config, left, evaluations, steps_done == 0, steps_per_s, speed
+    )
 
 
 def measured_speeds(runs: list[RunSpec], root: Path) -> dict[str, float]:
@@ -177,13 +184,12 @@ def measured_speeds(runs: list[RunSpec], root: Path) -> dict[str, float]:
     return out
 
 
-EPISODE_SECONDS = 0.15
-"""A 1000-step MuJoCo evaluation episode with the NumPy policy."""
-
-
-def plan(runs: list[RunSpec], root: Path) -> list[dict[str, Any]]:
+def plan(
+    runs: list[RunSpec], root: Path, speed: timing.HostSpeed = timing.REFERENCE
+) -> list[dict[str, Any]]:
     """Each run's status, steps done and estimated seconds left; ``measured`` says whether the
-    estimate rests on speeds measured in ``root`` (else on the contract's reference-host hint)."""
+    estimate rests on speeds measured in ``root`` (else on the contract's reference-host rate
+    times this host's ``speed``)."""
     speeds = measured_speeds(runs, root)
     rows = []
     for run in runs:
@@ -193,14 +199,14 @@ def plan(runs: list[RunSpec], root: Path) -> list[dict[str, Any]]:
                 "run": run,
                 "status": state,
                 "steps_done": steps,
-                "seconds": estimate_seconds(run, steps, speeds.get(run.run_id)),
+                "seconds": estimate_seconds(run, steps, speeds.get(run.run_id), speed),
                 "measured": run.run_id in speeds,
             }
         )
     return rows
 
 
-def prepare_datasets(runs: list[RunSpec], log=print) -> None:
+def prepare_datasets(runs: list[RunSpec], log=lambda line: print(line, flush=True)) -> None:
     """Make the missing built-in datasets once, here, before jobs that share them start."""
     seen = set()
     for run in runs:
@@ -325,12 +331,15 @@ def parse_duration(text: str) -> float:
     return seconds
 
 
-def job_estimates(job_list: list[list[RunSpec]], root: Path) -> list[float]:
-    """Each job's seconds left (its slowest run's), at the speeds measured in ``root`` so far."""
+def job_estimates(
+    job_list: list[list[RunSpec]], root: Path, speed: timing.HostSpeed = timing.REFERENCE
+) -> list[float]:
+    """Each job's seconds left (its slowest run's), at the speeds measured in ``root`` so far
+    (else at the reference rates times this host's ``speed``)."""
     runs = [run for job in job_list for run in job]
     speeds = measured_speeds(runs, root)
     return [
-        max(estimate_seconds(r, status(r, root)[1], speeds.get(r.run_id)) for r in job)
+        max(estimate_seconds(r, status(r, root)[1], speeds.get(r.run_id), speed) for r in job)
         for job in job_list
     ]
 
@@ -350,9 +359,10 @@ def run_local(
     root: Path,
     workers: int | None = None,
     single_thread: bool = True,
-    log=print,
+    log=lambda line: print(line, flush=True),  # a line in a log file as it happens
     deadline: float | None = None,
     taken: Any = None,
+    speed: timing.HostSpeed = timing.REFERENCE,
 ) -> None:
     """A pool of ``workers`` subprocesses (default: one per CPU core), one job each at a time.
 
@@ -361,7 +371,8 @@ def run_local(
     resume from their checkpoints next time. With a ``deadline`` (``time.time()`` seconds) a job
     starts only if its estimate (:func:`job_estimates`, taken anew whenever a worker is free, so
     that the runs measured so far set the speeds) ends by then; the rest are left for a later
-    sweep and named in the log. ``taken(run)`` (e.g. :func:`taken_elsewhere`), asked as a job is
+    sweep and named in the log (the reference rates times ``speed`` for runs not measured yet).
+    Each start and end is a line of ``log``, with how many jobs are done. ``taken(run)`` (e.g. :func:`taken_elsewhere`), asked as a job is
     about to start, says why a run is not to be trained here after all (None: train it).
     """
     from eabc.experiments.worker import PARENT  # noqa: PLC0415
@@ -370,6 +381,7 @@ def run_local(
     env = {**os.environ, **(SINGLE_THREAD if single_thread else {}), PARENT: str(os.getpid())}
     previous = _exit_on_sigterm()
     pending = list(job_list)
+    total, ended = len(job_list), 0
     left_out: list[str] = []
     active: list[tuple[subprocess.Popen, list[RunSpec], Any]] = []
     logs = root / "logs"
@@ -379,7 +391,7 @@ def run_local(
         while pending or active:
             while pending and len(active) < workers:
                 if deadline is not None:
-                    costs = job_estimates(pending, root)
+                    costs = job_estimates(pending, root, speed)
                     index = next_job(pending, costs, time.time(), deadline)
                     index = len(pending) if index is None else index
                     for job in pending[:index]:  # they would not finish before the deadline
@@ -401,19 +413,25 @@ def run_local(
                 payload = json.dumps([r.to_json() for r in job])
                 cmd = [sys.executable, "-m", "eabc.experiments.worker", str(root), payload]
                 active.append((subprocess.Popen(cmd, env=env, stdout=out, stderr=out), job, out))
-                log(f"started {name} ({len(job)} run{'s' * (len(job) > 1)})")
+                log(
+                    f"started {name} ({len(job)} run{'s' * (len(job) > 1)}; {ended} of {total} jobs done)"
+                )
             time.sleep(0.2)
             for proc, job, out in list(active):
                 if proc.poll() is None:
                     continue
                 active.remove((proc, job, out))
                 out.close()
+                ended += 1
                 name = job[0].group_id if len(job) > 1 else job[0].run_id
                 if proc.returncode:
                     failures.append(name)
-                    log(f"FAILED {name} (exit {proc.returncode}); see {logs / (name + '.log')}")
+                    log(
+                        f"FAILED {name} (exit {proc.returncode}); see {logs / (name + '.log')} "
+                        f"({ended} of {total} jobs done)"
+                    )
                 else:
-                    log(f"finished {name}")
+                    log(f"finished {name} ({ended} of {total} jobs done)")
     finally:
         for proc, _, _out in active:
             proc.terminate()
@@ -449,7 +467,7 @@ def run_ray(
     address: str = "auto",
     num_cpus: float = 1.0,
     num_gpus: float = 0.0,
-    log=print,
+    log=lambda line: print(line, flush=True),
 ) -> None:
     """One Ray task per job with declared CPU/GPU resources; ``root`` must be a shared directory.
 

@@ -25,6 +25,7 @@ import math
 import numpy as np
 import pandas as pd
 
+from eabc import timing
 from eabc.experiments.labels import (
     dataset_names,
     dataset_sort_key,
@@ -200,7 +201,7 @@ def runtime_table(runs: pd.DataFrame) -> pd.DataFrame:
     runs = labelled(runs)
     rate = runs["steps_per_s"].astype(float)
     runs = runs[np.isfinite(rate) & (rate > 0)]
-    hours = 1e6 / runs["steps_per_s"].astype(float) / 3600.0
+    hours = timing.hours_per_million(runs["steps_per_s"].astype(float))  # as dry runs state it
     table = hours.groupby(runs["label"]).agg(["mean", "std", "count"])
     table = table.rename(columns={"count": "runs"})
     return table.reindex([label for label in ordered_labels(runs) if label in table.index])

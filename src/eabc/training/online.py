@@ -28,13 +28,13 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-from tqdm.auto import tqdm
 
 from eabc import networks, pytree, ranges
 from eabc.agents import sac
 from eabc.agents.common import Batch
 from eabc.data import tasks
 from eabc.evaluation import Evaluator, make_env
+from eabc.progress import bar as progress_bar
 from eabc.training import checkpoint, provenance
 from eabc.training.checkpoint import CONFIG, read_config
 from eabc.training.logger import RunLogger
@@ -240,9 +240,9 @@ def train_sac(run: OnlineRun, progress: bool = True) -> dict[str, Any]:
     env_name = next((k for k, v in tasks.ENVS.items() if v.env_id == config.env_id), None)
     logger = RunLogger(run_dir, resume_step=step)
     (run_dir / SNAPSHOTS).mkdir(exist_ok=True)
-    bar = tqdm(
-        total=config.steps, initial=step, unit="step", disable=not progress,
-        desc=f"sac {config.env}", dynamic_ncols=True, mininterval=1.0,
+    bar = progress_bar(
+        config.steps, f"sac {config.env}", initial=step, enabled=progress,
+        dynamic_ncols=True, mininterval=1.0,
     )  # fmt: skip
     episode_return, episode_length, window_started = 0.0, 0, time.perf_counter()
     metrics: dict[str, float] = {}
@@ -306,8 +306,8 @@ def refill_buffer(run: OnlineRun, sampler, rng: np.random.Generator, n: int, pro
     env, step = run.env, int(run.state["step"])
     low, high = env.action_space.low, env.action_space.high
     obs, _ = env.reset(seed=run.config.seed + step + 1)
-    for _ in tqdm(
-        range(n), desc="refilling the replay buffer", unit="step", disable=not progress,
+    for _ in progress_bar(
+        n, "refilling the replay buffer", iterable=range(n), enabled=progress,
         dynamic_ncols=True, mininterval=1.0,
     ):  # fmt: skip
         action = _explore(run.config, step, obs, sampler, rng, low, high)
