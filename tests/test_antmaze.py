@@ -3,6 +3,7 @@ environments (observation layout, goal noise, termination on success, the low-le
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import itertools
 import json
@@ -297,12 +298,138 @@ def test_episode_cells_follow_each_family():
         episode_cells(MAZES["umaze"], "random", rng)
 
 
+def test_faithful_episode_cells_follow_d4rls_dataset_flags():
+    """D4RL's files name their flags: umaze from the start cell to the map's goal cell; play
+    (--multi_start) from any free cell but a goal cell, uniformly, to a goal cell of the map its
+    script rolled out in; diverse (--multi_start --multigoal) start and goal uniform over the free
+    cells."""
+    from eabc.data.antmaze_collect import d4rl_episode_cells
+
+    rng = np.random.default_rng(0)
+    for maze in MAZES.values():
+        assert d4rl_episode_cells(maze, "fixed", rng) == (None, maze.goal_cell)
+        play = [d4rl_episode_cells(maze, "play", rng) for _ in range(3000)]
+        starts = collections.Counter(start for start, _ in play)
+        assert set(starts) == set(maze.free_cells) - set(maze.generation_goals)
+        assert max(starts.values()) < 2 * min(starts.values())  # spread evenly
+        assert {goal for _, goal in play} == set(maze.generation_goals)
+        diverse = [d4rl_episode_cells(maze, "diverse", rng) for _ in range(3000)]
+        assert (
+            {start for start, _ in diverse} == {goal for _, goal in diverse} == set(maze.free_cells)
+        )
+    with pytest.raises(ValueError, match="unknown AntMaze family 'random'"):
+        d4rl_episode_cells(MAZES["umaze"], "random", rng)
+
+
+def test_faithful_actions_are_sampled_from_the_policy_not_its_mean(policy):
+    """D4RL sampled its SAC policy's tanh-Gaussian (rlkit's exploration policy); the first recipe
+    took the mean action. Each row draws from its episode's own generator."""
+    from eabc import numpy_networks
+    from eabc.data.antmaze_collect import _actions
+
+    obs = np.random.default_rng(0).standard_normal((4, 29))
+    rngs = lambda seed: [np.random.default_rng([seed, k]) for k in range(4)]  # noqa: E731
+    sampled = _actions(policy, True)(obs, rngs(1))
+    mean, log_std = np.split(numpy_networks.numpy_mlp(policy)(obs).astype(np.float64), 2, axis=1)
+    eps = np.stack([r.standard_normal(8) for r in rngs(1)])
+    std = np.exp(np.clip(log_std, numpy_networks.LOG_STD_MIN, numpy_networks.LOG_STD_MAX))
+    np.testing.assert_allclose(sampled, np.tanh(mean + std * eps), rtol=1e-12)
+    np.testing.assert_array_equal(_actions(policy, True)(obs, rngs(1)), sampled)
+    assert not np.allclose(_actions(policy, True)(obs, rngs(2)), sampled)
+    mean_action = numpy_networks.numpy_actor(policy, 1.0, gaussian=True)(obs)
+    np.testing.assert_array_equal(_actions(policy, False)(obs, rngs(1)), mean_action)
+    assert np.abs(sampled - mean_action).mean() > 0.05
+
+
+def test_d4rls_cell_lookup_truncates_toward_the_next_centre():
+    maze = MAZES["umaze"]
+    assert mazes.d4rl_cell(maze, (-1.9, -1.9)) == (1, 1)  # raised to 1e-4
+    assert mazes.d4rl_cell(maze, (3.99, 0.0)) == (1, 1)  # the right half of (1, 1) and ...
+    assert mazes.d4rl_cell(maze, (5.0, 0.0)) == (1, 2)  # ... the left half of (1, 2)
+    assert mazes.d4rl_cell(maze, (0.5, 7.5)) == (2, 1)  # (3, 1)'s lower half: a wall cell
+    assert maze.xy_to_cell((0.5, 7.5)) == (3, 1)
+
+
+@pytest.mark.parametrize("name", list(MAZES))
+def test_d4rls_waypoint_rule_steps_along_a_shortest_path_from_every_position(name):
+    """From positions all over every free cell (also where the lookup puts the torso in a wall
+    cell) toward random noisy goals: the goal itself, or a fresh point in a free cell one step
+    nearer the goal's cell than the looked-up cell."""
+    maze, rng = MAZES[name], np.random.default_rng(0)
+    cells = maze.free_cells
+    offsets = np.linspace(-1.9, 1.9, 5)
+    for cell in cells:
+        for dx, dy in itertools.product(offsets, offsets):
+            xy = maze.cell_to_xy(cell) + [dx, dy]
+            goal_cell = cells[rng.integers(len(cells))]
+            goal = maze.cell_to_xy(goal_cell) + rng.uniform(0, 1.5, 2)
+            point = mazes.d4rl_waypoint(maze, xy, goal, rng)
+            if np.array_equal(point, goal):
+                continue
+            step, here = maze.xy_to_cell(point), mazes.d4rl_cell(maze, xy)
+            distance = mazes.distances_to(maze, goal_cell)
+            offset = point - maze.cell_to_xy(step)
+            assert maze.is_free(step) and (offset >= 0).all() and (offset < 1).all()
+            if maze.is_free(here):
+                assert distance[step] == distance[here] - 1, (xy, goal)
+            again = mazes.d4rl_waypoint(maze, xy, goal, rng)
+            assert maze.xy_to_cell(again) == step and not np.array_equal(again, point)
+
+
+def test_the_first_recipe_stays_makeable_and_loadable_by_name(tmp_path, monkeypatch, policy):
+    """``antmaze-umaze@planner-v0`` makes the first recipe, its arrays bit for bit as before
+    recipes had names; a cached file from then (no recipe recorded) is not taken for the default
+    recipe's, and is kept under its recipe's name rather than overwritten."""
+    import hashlib
+
+    from eabc.data import antmaze_collect, generate, loaders
+
+    assert "antmaze-umaze@planner-v0" in generate.builtin_names()
+    assert antmaze_collect.split_name("antmaze-umaze") == ("antmaze-umaze", "faithful-v1")
+    with pytest.raises(DatasetError, match="unknown AntMaze recipe 'v9'; the recipes are"):
+        antmaze_collect.split_name("antmaze-umaze@v9")
+    # the first recipe's controller, as recorded before recipes had names
+    collected = antmaze_collect.collect(
+        "umaze", "fixed", 4, seed=5, actor=policy, max_episode_steps=60, num_envs=2,
+        progress=False, recipe_name="planner-v0",
+    )  # fmt: skip
+    digest = hashlib.sha256()
+    for array in (collected.observations, collected.actions, collected.next_observations,
+                  collected.goals, collected.success, collected.flipped):  # fmt: skip
+        digest.update(np.ascontiguousarray(array).tobytes())
+    assert digest.hexdigest()[:16] == "143c0b343e76567e"
+
+    monkeypatch.setattr(antmaze_collect, "NUM_ENVS", 2)
+    cache = tmp_path / "datasets"
+    old = generate.make("antmaze-umaze@planner-v0", cache / "old.hdf5", seed=1, size=800)
+    data = loaders.load_file(old)
+    np.testing.assert_array_equal(np.flatnonzero(data.timeouts), [699, 799])  # 700-step episodes
+    assert data.metadata["antmaze_recipe"] == "planner-v0" and data.reward_offset == -1.0
+    # a cache from before recipes: the same file under the plain name, no recipe recorded
+    metadata = {k: v for k, v in data.metadata.items() if k != "antmaze_recipe"}
+    plain = generate.save_hdf5(
+        dataclasses.replace(data, name="antmaze-umaze", metadata=metadata),
+        cache / "antmaze-umaze.hdf5",
+    )
+    assert not generate.is_current(plain, "antmaze-umaze")  # the default recipe makes it again
+    assert generate.is_current(plain, "antmaze-umaze@planner-v0")
+    loaded = generate.load_or_make("antmaze-umaze@planner-v0", cache_dir=tmp_path)
+    assert loaded.fingerprint() == data.fingerprint() and not plain.exists()  # moved, not made
+    moved = cache / "antmaze-umaze@planner-v0.hdf5"
+    plain.write_bytes(moved.read_bytes())
+    moved.unlink()
+    assert generate.keep_other_recipe(plain, "antmaze-umaze") == moved
+    assert not plain.exists() and loaders.load_file(moved).fingerprint() == data.fingerprint()
+
+
 def test_the_controller_takes_the_ant_to_the_umaze_goal(policy):
     """The zoo's low-level policy, steered by the waypoints with the data's action noise, reaches
     the evaluation goal from the start in most episodes (the card measures 30 per maze)."""
     from eabc.data import antmaze_collect
 
-    collected = antmaze_collect.collect("umaze", "fixed", 10, seed=0, actor=policy)
+    collected = antmaze_collect.collect(
+        "umaze", "fixed", 10, seed=0, actor=policy, recipe_name="planner-v0"
+    )
     assert collected.success.sum() >= 6, collected.summary()
     assert collected.observations.shape == (7000, 29) and collected.actions.shape == (7000, 8)
     assert np.abs(collected.actions).max() <= 1.0
@@ -368,15 +495,16 @@ def test_zoo_build_antmaze_writes_the_policy_and_its_measured_card(tmp_path, mon
 
 @pytest.fixture(scope="module")
 def made(tmp_path_factory, policy):
-    """antmaze-umaze-diverse of 1,000 transitions, made twice with seed 3 and once with seed 4
-    (2 environments at a time instead of 10: seconds, not a minute)."""
+    """antmaze-umaze-diverse of 1,500 transitions (by the default recipe: one whole 1,001-step
+    episode and a cut one), made twice with seed 3 and once with seed 4 (2 environments at a time
+    instead of 10: seconds, not a minute)."""
     from eabc.data import antmaze_collect, generate
 
     root = tmp_path_factory.mktemp("antmaze")
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(antmaze_collect, "NUM_ENVS", 2)
         paths = [
-            generate.make("antmaze-umaze-diverse", root / f"{i}.hdf5", seed=seed, size=1000)
+            generate.make("antmaze-umaze-diverse", root / f"{i}.hdf5", seed=seed, size=1500)
             for i, seed in enumerate((3, 3, 4))
         ]
     return paths
@@ -386,7 +514,7 @@ def test_made_antmaze_dataset_has_d4rls_layout_rewards_and_settings(made):
     from eabc.data import antmaze_collect, generate, loaders
 
     data = loaders.load_file(made[0])
-    assert data.size == 1000 and data.obs_dim == 29 and data.act_dim == 8
+    assert data.size == 1500 and data.obs_dim == 29 and data.act_dim == 8
     # the dataset's own settings: evaluation env, reference scores 0 and 1, training on r - 1
     assert data.env_id == "eabc/AntMaze-UMaze-v0" and data.name == "antmaze-umaze-diverse"
     assert (data.ref_min_score, data.ref_max_score, data.reward_offset) == (0.0, 1.0, -1.0)
@@ -396,12 +524,14 @@ def test_made_antmaze_dataset_has_d4rls_layout_rewards_and_settings(made):
     expected = np.linalg.norm(data.next_observations[:, :2] - goal, axis=1) <= 0.5
     np.testing.assert_array_equal(data.rewards, expected.astype(np.float32))
     np.testing.assert_array_equal(data.terminals, expected)
-    # whole 700-step episodes, each ending in a timeout; the budget cuts the second one
-    np.testing.assert_array_equal(np.flatnonzero(data.timeouts), [699, 999])
-    np.testing.assert_array_equal(data.observations[1:700], data.next_observations[:699])
-    assert not np.array_equal(data.observations[700], data.next_observations[699])
+    # whole 1,001-step episodes (D4RL's script), each ending in a timeout; the budget cuts the
+    # second one
+    np.testing.assert_array_equal(np.flatnonzero(data.timeouts), [1000, 1499])
+    np.testing.assert_array_equal(data.observations[1:1001], data.next_observations[:1000])
+    assert not np.array_equal(data.observations[1001], data.next_observations[1000])
     controller = data.metadata["controller"]
     assert controller["family"] == "diverse" and controller["episodes"] == 2
+    assert data.metadata["antmaze_recipe"] == controller["recipe"]["name"] == "faithful-v1"
     info = generate.describe_dataset(data)["antmaze"]
     assert info["reward_1_transitions"] == int(expected.sum())
     assert info["position_jumps_without_timeout"]["count"] == 0
@@ -431,17 +561,56 @@ def test_coverage_plot_is_drawn_for_antmaze_data_only(made, tmp_path):
         antmaze_collect.plot_coverage(dataclasses.replace(data, env_id="Hopper-v4"), path)
 
 
-def test_every_algorithm_trains_on_the_datasets_own_rewards(made):
-    """AntMaze's r - 1 replaces an algorithm's reward preprocessing (IQL's return scaling)."""
+def test_each_reward_convention_is_applied_and_each_algorithm_has_its_published_default(made):
+    """minus-one trains on r - 1, raw on the stored 0/1, iql-scale on 0/1 times 1000 / (max - min
+    episode return); unset, IQL (its train_offline.py) takes r - 1 and TD3+BC and EABC (the
+    authors' TD3_BC code) the raw rewards. MuJoCo data keep the algorithm's own preprocessing."""
     from eabc.agents import get_algorithm
     from eabc.data import loaders
-    from eabc.training.run import prepared
+    from eabc.training import rewards
+    from eabc.training.run import TrainConfig, prepared
 
     data = loaders.load_file(made[0])
-    for algo in ("iql", "td3bc", "eabc"):
-        np.testing.assert_array_equal(prepared(get_algorithm(algo), data).rewards, data.rewards - 1)
+    goal_reached = (np.arange(data.size) % 9 == 0) & (np.arange(data.size) < 1200)
+    data = dataclasses.replace(data, rewards=goal_reached.astype(np.float32))  # returns differ
+    iql = get_algorithm("iql")
+    np.testing.assert_array_equal(prepared(iql, data, "minus-one").rewards, data.rewards - 1)
+    np.testing.assert_array_equal(prepared(iql, data, "raw").rewards, data.rewards)
+    returns = data.episode_returns()
+    scaled = prepared(iql, data, "iql-scale")
+    np.testing.assert_allclose(
+        scaled.rewards, data.rewards * 1000 / (returns.max() - returns.min()), rtol=1e-6
+    )
+    defaults = {"iql": "minus-one", "td3bc": "raw", "eabc": "raw", "bc": "raw", "cql": "minus-one"}
+    for algo, convention in defaults.items():
+        assert TrainConfig(dataset="x", algo=algo).reward_convention == convention
+        expected = data.rewards - 1 if convention == "minus-one" else data.rewards
+        np.testing.assert_array_equal(prepared(get_algorithm(algo), data).rewards, expected)
+    assert TrainConfig(algo="td3bc", reward_convention="minus-one").reward_convention == "minus-one"
+    with pytest.raises(ValueError, match="reward_convention must be one of minus-one, raw"):
+        rewards.check("r-1")
     hopper = dataclasses.replace(data, reward_offset=None)
-    assert prepared(get_algorithm("iql"), hopper).metadata.get("reward_scale") is not None
+    assert prepared(iql, hopper, "raw").metadata.get("reward_scale") is not None
+
+
+def test_a_run_records_its_reward_convention_and_an_older_run_resumes_on_r_minus_1(made, tmp_path):
+    """config.json says which convention a run trained on; a config.json from before the setting
+    (none recorded) resumes on r - 1, what every run trained on then."""
+    from eabc.training import run as training
+
+    config = training.TrainConfig(
+        dataset=str(made[0]), algo="td3bc", steps=2, eval_interval=2, log_interval=1,
+        checkpoint_interval=2, eval_episodes=1,
+    )  # fmt: skip
+    training.start(config, tmp_path / "run").lock.release()
+    path = tmp_path / "run" / "config.json"
+    saved = json.loads(path.read_text())
+    assert saved["train"]["reward_convention"] == "raw"
+    del saved["train"]["reward_convention"]
+    path.write_text(json.dumps(saved))
+    resumed = training.resume(tmp_path / "run")
+    resumed.lock.release()
+    assert resumed.config.reward_convention == "minus-one"
 
 
 def test_antmaze_names_settings_and_errors(made):

@@ -60,9 +60,13 @@ def test_a_mujoco_dataset_made_by_two_processes_is_the_one_made_by_one(tmp_path,
     assert digest(again) == digest(one)
 
 
-def test_an_antmaze_dataset_made_by_two_processes_is_the_one_made_by_one(tmp_path, monkeypatch):
-    monkeypatch.setattr(antmaze_collect, "NUM_ENVS", 2)  # 4 episodes: 2 batches, 2 pieces
-    name, size = "antmaze-umaze-diverse", 2_500
+@pytest.mark.parametrize("name", ["antmaze-umaze-diverse", "antmaze-umaze-diverse@planner-v0"])
+def test_an_antmaze_dataset_made_by_two_processes_is_the_one_made_by_one(
+    tmp_path, monkeypatch, name
+):
+    """Both recipes: 2,500 rows are 3 (1,001-step) or 4 (700-step) episodes, 2 batches of 2."""
+    monkeypatch.setattr(antmaze_collect, "NUM_ENVS", 2)
+    size = 2_500
     one = generate.make(name, tmp_path / "one.hdf5", seed=5, size=size)
     two = generate.make(name, tmp_path / "two.hdf5", seed=5, size=size, workers=2)
     assert digest(two) == digest(one)

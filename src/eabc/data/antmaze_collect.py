@@ -1,6 +1,12 @@
 """AntMaze data by D4RL's recipe: the direction-following Ant policy steered through a maze by the
 waypoint planner, several environments at once.
 
+Two recipes (:data:`RECIPES`), recorded in every file: ``faithful-v1``, the default, follows
+D4RL's generation script and its dataset flags point by point (docs/datasets.md has the table);
+``planner-v0`` is the first recipe, kept so that its datasets and results stay reproducible
+(``antmaze-umaze@planner-v0``). What follows describes ``planner-v0``; :class:`Recipe` says where
+``faithful-v1`` differs.
+
 D4RL's ``scripts/generation/generate_ant_maze_datasets.py`` in our terms: every step, the
 breadth-first-search planner (:class:`eabc.data.mazes.WaypointPlanner`) gives the next cell's centre
 plus ``U(0, 1)`` noise per axis (the goal itself once in the goal's cell; the ant first reaches the
@@ -27,12 +33,12 @@ import os
 from pathlib import Path
 
 import numpy as np
+from tqdm.auto import tqdm
 
 from eabc import numpy_networks
 from eabc.data import antmaze, mazes, zoo
 from eabc.data.dataset import Dataset, DatasetError
 from eabc.data.mazes import Cell, Maze
-from eabc.progress import bar as progress_bar
 
 ACTION_NOISE = 0.2
 """Standard deviation of the Gaussian noise on every action (D4RL's ``--noisy``)."""
@@ -52,6 +58,64 @@ FAMILIES = {
 }
 """How an episode chooses its start and goal cell; the goal point is the cell's centre plus D4RL's
 goal noise, ``U(0, 1) + U(0, 0.5)`` per axis (:class:`eabc.data.antmaze.AntMazeEnv`)."""
+
+D4RL_FAMILIES = {
+    "fixed": "D4RL's antmaze-umaze, no --multi_start: from the start cell (reset noise only) to "
+    "the map's goal cell",
+    "play": "--multi_start: from a uniformly random free cell that is not a goal cell to a "
+    "uniformly random goal cell of the map D4RL's script rolled out in",
+    "diverse": "--multi_start --multigoal: start and goal cells each uniform over the free cells",
+}
+"""The families as D4RL's files were made (:func:`d4rl_episode_cells`; recipe ``faithful-v1``)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Recipe:
+    """How the controller collects an AntMaze dataset's episodes."""
+
+    name: str
+    sample_actions: bool
+    """Actions drawn from the policy's tanh-Gaussian before the noise (D4RL's ``get_action`` of
+    rlkit's ``exploration/policy``), else its mean action."""
+    d4rl_planner: bool
+    """D4RL's memoryless waypoint rule (:func:`eabc.data.mazes.d4rl_waypoint`), else
+    :class:`eabc.data.mazes.WaypointPlanner`, which centres in every cell before it turns."""
+    d4rl_cells: bool
+    """Starts and goals by D4RL's dataset flags (:func:`d4rl_episode_cells`), else
+    :data:`FAMILIES` (:func:`episode_cells`)."""
+    episode_steps: int | None
+    """Transitions per episode; None: the maze's evaluation limit (700 in umaze, else 1,000)."""
+
+    def steps(self, maze: Maze) -> int:
+        return self.episode_steps or maze.max_episode_steps
+
+
+D4RL_EPISODE_STEPS = 1001
+"""D4RL's script flags a timeout once its step counter, from 0, reaches ``--max_episode_steps``
+(default 1,000) and counts after: 1,001 transitions per episode, in every maze."""
+RECIPES = {
+    "faithful-v1": Recipe("faithful-v1", True, True, True, D4RL_EPISODE_STEPS),
+    "planner-v0": Recipe("planner-v0", False, False, False, None),
+}
+"""The AntMaze recipes by name; a dataset name ``antmaze-KIND@RECIPE`` asks for one by name."""
+DEFAULT_RECIPE = "faithful-v1"
+LEGACY_RECIPE = "planner-v0"
+"""The recipe of files that record none (made before recipes had names)."""
+
+
+def recipe(name: str | None = None) -> Recipe:
+    """The recipe called ``name`` (None: the default); an unknown name is refused with the known."""
+    name = name or DEFAULT_RECIPE
+    if name not in RECIPES:
+        raise DatasetError(f"unknown AntMaze recipe {name!r}; the recipes are {', '.join(RECIPES)}")
+    return RECIPES[name]
+
+
+def split_name(name: str) -> tuple[str, str]:
+    """``(dataset name without the recipe, recipe name)``: ``antmaze-umaze@planner-v0`` ->
+    ``("antmaze-umaze", "planner-v0")``, ``antmaze-umaze`` -> ``("antmaze-umaze", "faithful-v1")``."""
+    base, _, which = name.partition("@")
+    return base, recipe(which or None).name
 
 
 def dataset_family(kind: str) -> tuple[str, str]:
@@ -73,6 +137,28 @@ def episode_cells(maze: Maze, family: str, rng: np.random.Generator) -> tuple[Ce
         goal = goals[rng.integers(len(goals))]
         starts = [cell for cell in (maze.start_cell, *goals) if cell != goal]
         return starts[rng.integers(len(starts))], goal
+    raise ValueError(f"unknown AntMaze family {family!r}; known: {', '.join(FAMILIES)}")
+
+
+def d4rl_episode_cells(
+    maze: Maze, family: str, rng: np.random.Generator
+) -> tuple[Cell | None, Cell]:
+    """``(start cell, goal cell)`` of one episode as D4RL's files were made (their names carry the
+    flags): umaze without ``--multi_start``, from the start cell (reset noise only) to the map's
+    goal cell; play with ``--multi_start``, from a uniformly random free cell that is not a goal
+    cell (``_get_reset_location`` counts goal cells as walls) to a uniformly random goal cell of
+    the generation map (``goal_sampler``); diverse with ``--multi_start --multigoal``, start and
+    goal each uniform over the free cells (``goal_sampler`` of a map with no goal cells: the
+    published script does not read ``--multigoal``, D4RL's paper says random goals)."""
+    if family == "fixed":
+        return None, maze.goal_cell
+    if family == "play":
+        goals = maze.generation_goals
+        starts = [cell for cell in maze.free_cells if cell not in goals]
+        return starts[rng.integers(len(starts))], goals[rng.integers(len(goals))]
+    if family == "diverse":
+        cells = maze.free_cells
+        return cells[rng.integers(len(cells))], cells[rng.integers(len(cells))]
     raise ValueError(f"unknown AntMaze family {family!r}; known: {', '.join(FAMILIES)}")
 
 
@@ -139,16 +225,20 @@ def collect(
     first: int = 0,
     stop: int | None = None,
     progress: bool = True,
+    recipe_name: str = DEFAULT_RECIPE,
 ) -> Collected:
     """Roll out ``episodes`` controller episodes in ``maze_name`` (:data:`FAMILIES`), or of them
     only episodes ``first`` (a multiple of ``num_envs``) to ``stop``: batches are independent.
 
     Episode ``i`` draws everything (cells, reset, waypoint and action noise) from its own generator
     seeded with ``(seed, i)``: the data are the same for a seed, whatever the number of episodes.
+    ``recipe_name`` names the :data:`RECIPES` entry.
     """
     maze = mazes.get(maze_name)
-    steps = max_episode_steps or maze.max_episode_steps
-    act = numpy_networks.numpy_actor(actor, 1.0, gaussian=True)
+    how = recipe(recipe_name)
+    steps = max_episode_steps or how.steps(maze)
+    act = _actions(actor, how.sample_actions)
+    cells_of = d4rl_episode_cells if how.d4rl_cells else episode_cells
     envs = [antmaze.AntMazeEnv(maze.name, terminate_on_success=False) for _ in range(num_envs)]
     stop = episodes if stop is None else stop
     if first % num_envs or not 0 <= first < stop <= episodes:
@@ -159,25 +249,28 @@ def collect(
     act_out = np.empty((rows, envs[0].action_space.shape[0]), np.float32)
     goals = np.empty((stop - first, 2))
     success, flipped = np.zeros(stop - first, bool), np.zeros(stop - first, bool)
-    bar = progress_bar(rows, desc, enabled=progress, mininterval=1.0, leave=False)
+    bar = tqdm(
+        total=rows, desc=desc, unit="step", mininterval=1.0, leave=False,
+        disable=None if progress else True,
+    )  # fmt: skip
     for batch in range(first, stop, num_envs):
         # Always a full batch (the policy's batch size stays the same); extra episodes are dropped.
         ids = range(batch, batch + num_envs)
         rngs = [np.random.default_rng([seed, i]) for i in ids]
         obs = []
         for env, rng in zip(envs, rngs):
-            start, goal = episode_cells(maze, family, rng)
+            start, goal = cells_of(maze, family, rng)
             options = {"goal_cell": goal} | ({"start_cell": start} if start is not None else {})
             obs.append(env.reset(seed=int(rng.integers(2**63)), options=options)[0])
         obs = np.array(obs)
         batch_goals = np.array([env.goal for env in envs])
-        planners = [mazes.WaypointPlanner(maze, g) for g in batch_goals]
+        planners = [_planner(maze, g, how) for g in batch_goals]
         reached, flips = np.zeros(num_envs, bool), np.zeros(num_envs, bool)
         live = [k for k, i in enumerate(ids) if i < stop]
         for t in range(steps):
             targets = [plan(o[:2], r) for plan, o, r in zip(planners, obs, rngs)]
             low = np.stack([antmaze.lowlevel_observation(o, w) for o, w in zip(obs, targets)])
-            actions = act(low).astype(np.float64)
+            actions = act(low, rngs)
             noise = np.stack([r.standard_normal(actions.shape[1]) for r in rngs])
             actions = np.clip(actions + action_noise * noise, -1.0, 1.0).astype(np.float32)
             next_obs = np.array([env.step(a)[0] for env, a in zip(envs, actions)])
@@ -193,6 +286,30 @@ def collect(
             flipped[batch - first + k] = flips[k]
     bar.close()
     return Collected(obs_out, act_out, next_out, goals, success, flipped)
+
+
+def _actions(actor: dict[str, np.ndarray], sample: bool):
+    """``act(obs, rngs)``: a batch of actions in float64, row ``k`` sampled with ``rngs[k]`` from
+    the tanh-Gaussian (``sample``) or the mean action ``tanh(mean)``."""
+    if not sample:
+        mean_action = numpy_networks.numpy_actor(actor, 1.0, gaussian=True)
+        return lambda obs, rngs: mean_action(obs).astype(np.float64)
+    apply = numpy_networks.numpy_mlp(actor)
+
+    def act(obs: np.ndarray, rngs) -> np.ndarray:
+        mean, log_std = np.split(np.asarray(apply(obs), np.float64), 2, axis=-1)
+        std = np.exp(np.clip(log_std, numpy_networks.LOG_STD_MIN, numpy_networks.LOG_STD_MAX))
+        eps = np.stack([r.standard_normal(mean.shape[1]) for r in rngs])
+        return np.tanh(mean + std * eps)
+
+    return act
+
+
+def _planner(maze: Maze, goal, how: Recipe):
+    """``waypoint(xy, rng)`` toward ``goal`` for one episode, by the recipe's rule."""
+    if how.d4rl_planner:
+        return lambda xy, rng: mazes.d4rl_waypoint(maze, xy, goal, rng)
+    return mazes.WaypointPlanner(maze, goal)
 
 
 OPEN_PLANE_DISTANCE = (5.0, 10.0)
@@ -248,27 +365,34 @@ def make_dataset(
     seed: int,
     actor: dict[str, np.ndarray],
     num_envs: int = NUM_ENVS,
+    recipe_name: str = DEFAULT_RECIPE,
 ) -> tuple[Dataset, dict]:
-    """``size`` transitions of the AntMaze dataset ``antmaze-KIND``, relabelled against the
-    evaluation goal; the transitions and a summary of the controller's episodes."""
+    """``size`` transitions of the AntMaze dataset ``antmaze-KIND`` by the recipe
+    ``recipe_name``, relabelled against the evaluation goal; the transitions and a summary of the
+    controller's episodes."""
     maze_name, family = dataset_family(kind)
-    episodes = episodes_for(kind, size)
-    data = collect(maze_name, family, episodes, seed, actor, num_envs=num_envs, desc=name)
-    return relabelled(name, kind, size, data, num_envs)
+    episodes = episodes_for(kind, size, recipe_name)
+    data = collect(
+        maze_name, family, episodes, seed, actor, num_envs=num_envs, desc=name,
+        recipe_name=recipe_name,
+    )  # fmt: skip
+    return relabelled(name, kind, size, data, num_envs, recipe_name)
 
 
-def episodes_for(kind: str, size: int) -> int:
+def episodes_for(kind: str, size: int, recipe_name: str = DEFAULT_RECIPE) -> int:
     """Whole episodes that ``size`` transitions of ``antmaze-KIND`` are cut from."""
-    return -(-size // mazes.get(dataset_family(kind)[0]).max_episode_steps)
+    return -(-size // recipe(recipe_name).steps(mazes.get(dataset_family(kind)[0])))
 
 
 def relabelled(
-    name: str, kind: str, size: int, data: Collected, num_envs: int
-) -> tuple[Dataset, dict]:
+    name: str, kind: str, size: int, data: Collected, num_envs: int,
+    recipe_name: str = DEFAULT_RECIPE,
+) -> tuple[Dataset, dict]:  # fmt: skip
     """:func:`make_dataset`'s result from the collected episodes ``data``."""
     maze_name, family = dataset_family(kind)
     maze = mazes.get(maze_name)
-    steps = maze.max_episode_steps
+    how = recipe(recipe_name)
+    steps = how.steps(maze)
     goal = relabel_goal(maze)
     rewards, terminals = mazes.relabel(data.next_observations[:size, :2], goal)
     timeouts = np.zeros(size, bool)
@@ -285,8 +409,9 @@ def relabelled(
     )
     summary = {
         **data.summary(),
+        "recipe": dataclasses.asdict(how),
         "family": family,
-        "family_rule": FAMILIES[family],
+        "family_rule": (D4RL_FAMILIES if how.d4rl_cells else FAMILIES)[family],
         "relabel_goal": goal.tolist(),
         "action_noise": ACTION_NOISE,
         "num_envs": num_envs,

@@ -257,6 +257,44 @@ class WaypointPlanner:
         return maze.cell_to_xy(aim) + rng.uniform(self.noise[0], self.noise[1], size=2)
 
 
+def d4rl_cell(maze: Maze, xy) -> Cell:
+    """The cell D4RL's ``_xy_to_rowcol`` gives ``xy``: ``(int(1 + y / 4), int(1 + x / 4))`` with
+    x, y raised to at least 1e-4. Every map starts at cell (1, 1), so a cell's index covers the
+    square from its centre to the next centre toward +x, +y: half a cell off the cell ``xy`` is
+    in (:meth:`Maze.xy_to_cell`), and sometimes a wall."""
+    x, y = (max(float(v), 1e-4) for v in xy)
+    return int(1 + y / SCALING), int(1 + x / SCALING)
+
+
+def d4rl_waypoint(maze: Maze, xy, goal_xy, rng: np.random.Generator) -> np.ndarray:
+    """D4RL's ``create_navigation_policy`` at one step, with no memory: the cells of the torso
+    and the goal by :func:`d4rl_cell`; the goal itself once the next cell on a shortest path is
+    the goal's, else that cell's centre plus ``U(0, 1)`` per axis, drawn afresh at every step.
+
+    D4RL's breadth-first search may start from a wall cell (its truncated lookup puts the torso
+    there near a wall) and steps from it to a free neighbour on a shortest path, as here (ties
+    may break differently). A wall cell with no such neighbour, where D4RL's search would raise,
+    falls back to the cell the torso is actually in."""
+    here, target = d4rl_cell(maze, xy), d4rl_cell(maze, goal_xy)
+    step = _d4rl_next_cell(maze, here, target)
+    if step is None:
+        step = next_cell(maze, _free_cell(maze, xy), target)
+    if step == target:
+        return np.asarray(goal_xy, np.float64)
+    return maze.cell_to_xy(step) + rng.uniform(0.0, 0.25 * SCALING, size=2)
+
+
+def _d4rl_next_cell(maze: Maze, here: Cell, target: Cell) -> Cell | None:
+    """:func:`next_cell`, also from a wall cell (None where no free neighbour leads on)."""
+    if here == target or maze.is_free(here):
+        return next_cell(maze, here, target)
+    distance = distances_to(maze, target)
+    row, col = here
+    neighbours = [(row, col - 1), (row, col + 1), (row + 1, col), (row - 1, col)]
+    steps = [n for n in neighbours if maze.is_free(n) and distance[n] < np.inf]
+    return min(steps, key=lambda n: distance[n]) if steps else None
+
+
 def _free_cell(maze: Maze, xy) -> Cell:
     """The cell ``xy`` is in; the nearest free cell where a wall's edge pushed it into a wall's."""
     here = maze.xy_to_cell(xy)

@@ -232,11 +232,13 @@ def collect_antmaze(
     num_envs: int,
     workers: int,
     desc: str,
+    recipe_name: str = antmaze_collect.DEFAULT_RECIPE,
 ) -> antmaze_collect.Collected:
     """:func:`eabc.data.antmaze_collect.collect` with its batches of ``num_envs`` episodes shared
     out to ``workers`` processes; the actor is read from the file ``policy``."""
-    rows = episodes * antmaze_collect.mazes.get(maze_name).max_episode_steps
-    args = (maze_name, family, episodes, seed, str(policy), num_envs)
+    steps = antmaze_collect.recipe(recipe_name).steps(antmaze_collect.mazes.get(maze_name))
+    rows = episodes * steps
+    args = (maze_name, family, episodes, seed, str(policy), num_envs, recipe_name)
     firsts = range(0, episodes, num_envs)
     with Pool(workers, desc, rows, len(firsts)) as pool:
         parts = [
@@ -249,12 +251,12 @@ def collect_antmaze(
     )
 
 
-def _antmaze_piece(maze_name, family, episodes, seed, policy, num_envs, first, stop):
+def _antmaze_piece(maze_name, family, episodes, seed, policy, num_envs, recipe_name, first, stop):
     if policy not in _WORKER_CACHE:
         _WORKER_CACHE[policy] = zoo.load_actor(policy)
     return antmaze_collect.collect(
         maze_name, family, episodes, seed, _WORKER_CACHE[policy], num_envs=num_envs,
-        first=first, stop=stop, progress=False,
+        first=first, stop=stop, progress=False, recipe_name=recipe_name,
     )  # fmt: skip
 
 

@@ -21,7 +21,7 @@ import os
 import shutil
 import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import jax
 import numpy as np
@@ -32,7 +32,7 @@ from eabc.data import generate, tasks
 from eabc.data.dataset import Dataset, DatasetError, Normalizer, reference_scores_problem
 from eabc.data.sources import load_dataset
 from eabc.evaluation import Evaluator, check_spaces, make_env
-from eabc.training import checkpoint, identity, logger, run_config
+from eabc.training import checkpoint, identity, logger, rewards, run_config
 from eabc.training.checkpoint import CONFIG
 from eabc.training.chunks import device_data
 from eabc.training.lock import RunLock
@@ -68,6 +68,10 @@ class TrainConfig:
     """Save a checkpoint every this many steps (a multiple of log_interval)."""
     env: str | None = None
     """Gymnasium id for evaluation; by default the one the dataset names."""
+    reward_convention: Literal["minus-one", "raw", "iql-scale"] | None = None
+    """What sparse goal rewards (AntMaze's 0/1) are trained as: minus-one (r - 1), raw (0/1) or
+    iql-scale (x 1000 / return range); unset: the algorithm's published default (see
+    docs/algorithms.md). MuJoCo data ignore it."""
     cache_dir: str | None = None
     """Where built-in datasets are made (default $EABC_CACHE_DIR or ~/.cache/eabc)."""
 
@@ -94,6 +98,9 @@ class TrainConfig:
                 )
         if self.cache_dir is not None:  # checked now, not after minutes of making a dataset
             check_cache_dir(self.cache_dir, "cache_dir")
+        if self.reward_convention is None:  # set here, so config.json records what was used
+            object.__setattr__(self, "reward_convention", rewards.default(self.algo))
+        rewards.check(self.reward_convention)
 
 
 def check_cache_dir(path: str | Path, what: str) -> None:
@@ -262,7 +269,11 @@ def _pretrain(run: Run) -> None:
     of it), then the run's first checkpoint: a run killed after it does not pretrain again."""
     progress = _FileProgress(run.run_dir / PRETRAIN_PROGRESS)
     algorithm = run.algorithm
-    data = device_data(prepared(algorithm, run.dataset), run.normalizer, algorithm.next_actions)
+    data = device_data(
+        prepared(algorithm, run.dataset, run.config.reward_convention),
+        run.normalizer,
+        algorithm.next_actions,
+    )
     init_key, _ = _keys(run.config.seed)
     run.state["agent"] = run.algorithm.pretrain(
         run.state["agent"], data, jax.random.fold_in(init_key, 1), run.agent_config,
@@ -389,7 +400,8 @@ def lost_progress(run_dir: Path, steps: int, checkpoint_interval: int) -> str | 
 
 def _resume(run_dir: Path, dataset: Dataset | None, write: bool, restart: bool = False) -> Run:
     saved = run_config.read(run_dir)  # checked by its schema before anything uses it
-    config = TrainConfig(**saved["train"])
+    # a run from before the setting trained on r - 1, whatever its algorithm's default now
+    config = TrainConfig(**{"reward_convention": rewards.LEGACY, **saved["train"]})
     has_checkpoint = (run_dir / checkpoint.CHECKPOINT).exists()
     if has_checkpoint and restart:
         raise ValueError(
@@ -586,15 +598,13 @@ def _settings_text(algorithm: Algorithm, agent_config) -> str:
     return ", ".join(changed) or "its preset settings"
 
 
-def prepared(algorithm: Algorithm, dataset: Dataset) -> Dataset:
+def prepared(algorithm: Algorithm, dataset: Dataset, convention: str | None = None) -> Dataset:
     """The data as the algorithm trains on it; the run keeps the dataset as loaded.
 
-    A dataset that carries its own training rewards (``reward_offset``: AntMaze's ``r - 1``) is
-    trained on with them by every algorithm, in place of the algorithm's reward preprocessing (IQL's
-    return scaling is its authors' rule for the MuJoCo tasks; on AntMaze they use ``r - 1``)."""
-    if dataset.reward_offset is not None:
-        return dataset.training_view()
-    return dataset if algorithm.preprocess is None else algorithm.preprocess(dataset)
+    A dataset with sparse goal rewards (a ``reward_offset``: AntMaze) is trained on by the run's
+    ``reward_convention`` (:mod:`eabc.training.rewards`; None: the algorithm's default) in place
+    of the algorithm's reward preprocessing; other data by the algorithm's preprocessing."""
+    return rewards.apply(algorithm, dataset, convention)
 
 
 # One compiled program rather than dozens of eagerly compiled operations (and cacheable on disk).
