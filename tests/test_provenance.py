@@ -56,7 +56,8 @@ def test_code_version_names_the_commit_and_uncommitted_changes(tmp_path):
 def test_the_results_store_names_each_runs_machines_and_code(tmp_path):
     run = tmp_path / "root" / "hopper-medium__eabc__seed0"
     run.mkdir(parents=True)
-    config = {"train": {"algo": "eabc", "seed": 0, "steps": 100, "dataset": "hopper-medium"}}
+    config = {"train": {"algo": "eabc", "seed": 0, "steps": 100, "dataset": "hopper-medium"},
+              "agent": {}, "dataset": {"name": "hopper-medium"}}  # fmt: skip
     (run / "config.json").write_text(json.dumps(config))
     first = {"from_step": 0, "cpu": "Zen 4", "isa": "AVX-512", "code": "0.1 (git a)"}
     again = {"from_step": 50, "cpu": "Zen 4", "isa": "AVX-512", "code": "0.1 (git b)"}
