@@ -598,3 +598,23 @@ def test_any_junk_in_the_cache_is_one_unreadable_row_of_data_list(monkeypatch, j
         rows = {line.split()[0]: line for line in out.getvalue().splitlines()[1:]}
         assert "unreadable" in rows[name] and f"eabc data make {name} --force" in rows[name]
         assert "(not made)" in rows["walker2d-random"]
+
+
+def test_the_dry_run_says_what_the_sweep_would_refuse(tmp_path, capsys):
+    """A root holding a run of another spec under a run's name: the sweep refuses to start;
+    its dry run used to list the run as ``changed`` and say nothing of the refusal."""
+    from eabc.experiments.spec import expand  # noqa: PLC0415
+
+    good = tmp_path / "good.npz"
+    np.savez(good, **tiny_arrays(), env_id=np.asarray("Pendulum-v1"))
+    argv = sweep_argv(tmp_path, str(good))
+    (run,) = expand({"datasets": [str(good)], "algos": ["td3bc"], "seeds": [0], "steps": 200})
+    run_dir = tmp_path / "root" / "runs" / run.run_id
+    run_dir.mkdir(parents=True)
+    (run_dir / "sweep.json").write_text(json.dumps({**run.to_json(), "seed": 1}))
+    with pytest.raises(SystemExit, match="trained with another spec"):
+        main(argv)
+    capsys.readouterr()
+    main([*argv, "--dry-run"])
+    err = capsys.readouterr().err
+    assert "the sweep would refuse to start" in err and "trained with another spec" in err

@@ -21,6 +21,10 @@ from eabc.training import checkpoint
 from eabc.training.run import read_checkpoint
 
 OPSET = 17
+PRODUCER_MARK = b"\x12\x04eabc"
+"""How an ONNX file this package wrote begins: its producer_name field (protobuf field 2, 4 bytes,
+"eabc") within its first bytes, after the IR version. ``eabc export-policy`` overwrites a file in
+the run directory only when it bears this mark."""
 """ONNX operator set: every op used (Sub, Div, MatMul, Add, Relu, Tanh, Mul) is older than this."""
 
 

@@ -62,3 +62,44 @@ def check_directory(path: str | os.PathLike, flag: str) -> None:
         raise ValueError(
             f"{flag} {path} is not a directory{inside}: give a directory (it is made if missing)"
         )
+
+
+def check_output_file(
+    path: str | os.PathLike, flag: str, protected: str | os.PathLike | None = None,
+    ours: bytes | None = None,
+) -> None:  # fmt: skip
+    """``ValueError`` naming ``flag`` when writing ``path`` could destroy what is not an output
+    of the command: something that exists and is not a regular file (a directory, a device such
+    as /dev/null, a FIFO, also behind a link), or a file inside the directory ``protected`` (a
+    run's checkpoint, config.json, log) unless its first bytes hold ``ours``, the mark of a file
+    the command itself wrote there before. Its folder must be one, too."""
+    given = expand(path)
+    target = given.resolve() if given.is_symlink() or given.exists() else given
+    if given.exists() or given.is_symlink():
+        if not target.exists() or not stat.S_ISREG(os.stat(target).st_mode):
+            kind = _kind(target)
+            raise ValueError(
+                f"{flag} {path} is {kind}, not a regular file: writing there would replace it; "
+                "give the path of a new file or of one written before"
+            )
+        if protected is not None and target.is_relative_to(expand(protected).resolve()):
+            with open(target, "rb") as f:
+                head = f.read(64)
+            if ours is None or ours not in head:
+                raise ValueError(
+                    f"{flag} {path} is a file of {protected} that this command did not write "
+                    f"({target.name}); write to a new file, e.g. {Path(protected) / 'policy.onnx'}"
+                )
+    check_directory(given.parent if str(given.parent) else ".", f"{flag} {path}: its folder")
+
+
+def _kind(path: Path) -> str:
+    if not path.exists():
+        return "a link to nothing"
+    mode = os.stat(path).st_mode
+    for test, word in ((stat.S_ISDIR, "a directory"), (stat.S_ISCHR, "a character device"),
+                       (stat.S_ISBLK, "a block device"), (stat.S_ISFIFO, "a FIFO"),
+                       (stat.S_ISSOCK, "a socket")):  # fmt: skip
+        if test(mode):
+            return word
+    return "not a regular file"

@@ -16,6 +16,8 @@ from typing import Any
 
 import pydantic
 
+from eabc import ranges
+
 Check = tuple[Callable[[Any], bool], str]
 
 RANGES: dict[str, Check] = {
@@ -32,7 +34,10 @@ RANGES: dict[str, Check] = {
     "max_weight": (lambda v: v > 0, "> 0"),
 }
 """Ranges by exact field name; learning rates (``*_lr``) must be > 0 and every other number
-finite and >= 0 (weights, temperatures, noise scales) unless listed here or in SIGNED."""
+finite and >= 0 (weights, temperatures, noise scales) unless listed here or in SIGNED. Every
+integer (a count, a size, a number of steps) is at most ``2**31 - 1`` besides
+(:data:`eabc.ranges.INT32_MAX`): the step counters and sample indices are 32-bit; the memory the
+sizes ask for is checked when a run starts, against the machine's."""
 SIGNED = {"target_entropy", "target_action_gap"}
 """Numbers that may be negative."""
 
@@ -81,6 +86,12 @@ def validate(preset: Any, algo: str, overrides: dict[str, Any] | None = None) ->
         finite = not isinstance(value, float) or math.isfinite(value)
         if not finite or not ok(value):
             raise SettingError(f"{algo} setting {name}={value!r} must be {text or 'finite'}")
+        items = value if isinstance(value, tuple) else (value,)
+        if any(isinstance(v, int) and v > ranges.INT32_MAX for v in items):
+            raise SettingError(
+                f"{algo} setting {name}={value!r} must be at most {ranges.INT32_MAX} (counts, "
+                "sizes and steps are 32-bit integers); give a smaller value"
+            )
     return checked
 
 

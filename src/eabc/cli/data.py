@@ -11,8 +11,8 @@ from typing import Annotated
 
 import tyro
 
-from eabc import timing
-from eabc.ranges import Finite, Positive, Seed
+from eabc import ranges, timing
+from eabc.ranges import Finite, Positive, Seed, Steps
 
 
 @dataclasses.dataclass(frozen=True)
@@ -22,7 +22,7 @@ class DataMake:
     name: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="NAME")]
     seed: Seed = 0
     """Seed of the environment and the actions; the same seed gives the same file."""
-    size: Positive | None = None
+    size: Steps | None = None
     """Transitions (default D4RL's size)."""
     cache_dir: str | None = None
     """Cache directory (default $EABC_CACHE_DIR or ~/.cache/eabc)."""
@@ -157,6 +157,7 @@ def run_data(cmd: DataMake | DataInfo | DataList | DataExport) -> None:
     elif os.environ.get("EABC_CACHE_DIR"):
         check_cache_dir(os.environ["EABC_CACHE_DIR"], "$EABC_CACHE_DIR")
     if isinstance(cmd, DataMake):
+        _check_making_memory(cmd)
         path = generate.dataset_path(cmd.name, cmd.cache_dir)
         if path.exists() and not cmd.force:
             if generate.is_current(path, cmd.name):
@@ -214,6 +215,21 @@ def run_data(cmd: DataMake | DataInfo | DataList | DataExport) -> None:
             from eabc.data import antmaze_collect  # noqa: PLC0415
 
             print(antmaze_collect.plot_coverage(dataset, Path(cmd.plot).expanduser()))
+
+
+def _check_making_memory(cmd: DataMake) -> None:
+    """Refuse a ``--size`` whose arrays (float32 observations, next observations, actions,
+    rewards, terminals and timeouts) would not fit in the memory free, before minutes of making."""
+    from eabc.data import generate, tasks  # noqa: PLC0415
+    from eabc.evaluation import make_env  # noqa: PLC0415
+
+    info = tasks.env_info(tasks.parse_task(cmd.name))
+    if cmd.size is None or info is None or cmd.name not in generate.builtin_names():
+        return  # the default sizes fit; an unknown name is refused by make, naming it
+    env = make_env(info.env_id)
+    obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
+    need = cmd.size * 4 * (2 * obs_dim + act_dim + 3)
+    ranges.check_memory([("--size", str(cmd.size), f"{cmd.name}'s arrays", need)])
 
 
 def _number(value: float | None, width: int, spec: str) -> str:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -12,9 +13,9 @@ from typing import Annotated, Literal
 import tyro
 
 from eabc import paths, timing
-from eabc.cli.options import parse_value
+from eabc.cli.options import Interrupted, parse_value
 from eabc.experiments.presets import PRESETS as _SWEEP_PRESETS
-from eabc.ranges import NonNegativeNumber, Positive, PositiveNumber, Seed
+from eabc.ranges import BatchSize, NonNegativeNumber, Positive, PositiveNumber, Seed, Steps
 
 SWEEP_PRESETS = tuple(_SWEEP_PRESETS)
 """The names of ``eabc.experiments.presets.PRESETS``, the choices of ``eabc sweep --preset``."""
@@ -43,7 +44,7 @@ class Sweep:
     """Algorithms (replace the spec's or preset's; of its variants, those of these algorithms)."""
     seeds: tuple[Seed, ...] = ()
     """Seeds (replace the spec's or preset's)."""
-    steps: Positive | None = None
+    steps: Steps | None = None
     """Gradient steps per run (default the spec's, else 1M), e.g. to shorten a preset."""
     grid: tuple[str, ...] = ()
     """Extra grid axes as KEY=V1,V2 (e.g. num_critics=5,10 pessimism=min,mean-std); put
@@ -73,15 +74,15 @@ class Sweep:
     """Start only the runs whose estimate (as --dry-run shows it) ends within this time from now,
     e.g. 150m or 2.5h; the others wait for a later sweep. For machines that are not kept: a run
     begun and not finished when the machine goes is lost. Local backend only."""
-    eval_interval: Positive | None = None
+    eval_interval: Steps | None = None
     """Evaluate every this many steps (default the spec's, else 5000)."""
     eval_episodes: Positive | None = None
     """Episodes per evaluation (default the spec's, else 10)."""
-    log_interval: Positive | None = None
+    log_interval: Steps | None = None
     """Steps per compiled chunk and log row (default the spec's, else 1000)."""
-    checkpoint_interval: Positive | None = None
+    checkpoint_interval: Steps | None = None
     """Checkpoint every this many steps (default the spec's, else 5000)."""
-    batch_size: Positive | None = None
+    batch_size: BatchSize | None = None
     """Mini-batch size (default the spec's, else each algorithm's own: 256; ReBRAC 1024)."""
 
 
@@ -186,11 +187,14 @@ def sweep_spec(cmd: Sweep) -> dict:
     if train and isinstance(spec.get("train") or {}, dict):
         spec["train"] = {**(spec.get("train") or {}), **train}  # the flags replace its keys
     if cmd.grid and isinstance(spec.get("grid") or {}, dict):
-        grid = dict(spec.get("grid") or {})
+        grid, given = dict(spec.get("grid") or {}), set()
         for item in cmd.grid:
             key, sep, values = item.partition("=")
             if not sep:
                 raise ValueError(f"bad --grid {item!r}; use KEY=V1,V2")
+            if key in given:
+                raise ValueError(f"--grid gives {key} twice; list its values once, {key}=V1,V2")
+            given.add(key)
             grid[key] = [parse_value(v) for v in values.split(",")]
         spec["grid"] = grid
     return spec
@@ -238,17 +242,22 @@ def run_sweep(cmd: Sweep) -> None:
     found = sweep.problems(runs, root)
     for why in found["broken"]:  # one unreadable run does not stop the others
         print(f"skipping a broken run: {why}", file=sys.stderr)
-    if found["changed"] and not cmd.dry_run:
-        raise ValueError(
-            f"{len(found['changed'])} run(s) in {root} were trained with another spec, e.g. "
-            f"{found['changed'][0]}; use another --root, or move those run directories away"
-        )
+    changed = (
+        f"{len(found['changed'])} run(s) in {root} were trained with another spec, e.g. "
+        f"{found['changed'][0]}; use another --root, or move those run directories away"
+        if found["changed"]
+        else None
+    )
+    if changed and not cmd.dry_run:
+        raise ValueError(changed)
     if cmd.dry_run:
         for r in rows:
             spec = r["run"]
             print(
                 f"  {r['status']:8s} {r['steps_done']:>8d}  ~{r['seconds'] / 3600:6.2f} h  {spec.run_id}"
             )
+        if changed:  # what the sweep itself would refuse, said by its dry run
+            print(f"the sweep would refuse to start: {changed}", file=sys.stderr)
         return
     deadline = None if cmd.within is None else time.time() + sweep.parse_duration(cmd.within)
     if deadline is not None and cmd.backend != "local":
@@ -270,6 +279,11 @@ def run_sweep(cmd: Sweep) -> None:
                 deadline=deadline, speed=speed,
                 taken=(lambda run: sweep.taken_elsewhere(run, others)) if others else None,
             )  # fmt: skip
+    except KeyboardInterrupt:  # the pool has stopped its workers; their runs resume exactly
+        raise Interrupted(
+            f"sweep interrupted; its runs continue from their last checkpoints when the same "
+            f"`eabc sweep` command runs again (root {root})"
+        ) from None
     finally:
         table, _ = results.collect(root)
         print(f"results: {root / results.DATABASE} ({len(table)} runs)")
@@ -364,6 +378,11 @@ def run_report(cmd: Report) -> None:
             )
     out = Path(cmd.out) if cmd.out else paths.expand(cmd.root) / "report"
     paths.check_directory(out, "--out" if cmd.out else "the report's folder")
+    if not cmd.out and not os.access(paths.expand(cmd.root), os.W_OK):
+        raise ValueError(
+            f"{cmd.root} is read-only, and the report goes to {out} by default: give --out DIR "
+            "to write it elsewhere (the runs are only read)"
+        )
     if paths.expand(cmd.root).is_dir():
         results.store(cmd.root, every, evaluations)
     fix = cmd.fix or report.RECOMMENDED

@@ -152,6 +152,12 @@ def check_agent(config, agent, items: tuple[str, ...]) -> None:
     algorithm = get_algorithm(config.algo)
     flags = {k: v for k, v in dataclasses.asdict(agent).items() if v is not None}
     settings = parse_settings(items)
+    both = sorted(set(flags) & set(settings))
+    if both:  # which one wins would be a silent choice
+        flag = "--" + both[0].replace("_", "-")
+        raise ValueError(
+            f"{flag} {flags[both[0]]} and --set {both[0]}=... both set {both[0]}; give it once"
+        )
     for source, names in (("--set: ", settings), ("", flags)):
         unknown = sorted(set(names) - algorithm.settings())
         if unknown:
@@ -207,13 +213,19 @@ def _agent_overrides() -> type:
 AgentOverrides = _agent_overrides()
 
 
-def parse_settings(items: tuple[str, ...]) -> dict:
-    """``KEY=VALUE`` strings as settings; a comma makes a tuple (``hidden_dims=512,512``)."""
-    settings = {}
+def parse_settings(items: tuple[str, ...], flag: str = "--set") -> dict:
+    """``KEY=VALUE`` strings as settings; a comma makes a tuple (``hidden_dims=512,512``). A key
+    given twice is refused: which of its values was meant is not for the parser to guess."""
+    settings, given = {}, {}
     for item in items:
         key, sep, value = item.partition("=")
         if not sep or not key:
-            raise ValueError(f"bad --set {item!r}; use KEY=VALUE")
+            raise ValueError(f"bad {flag} {item!r}; use KEY=VALUE")
+        if key in given:
+            raise ValueError(
+                f"{flag} gives {key} twice ({given[key]} and {item}); give each setting once"
+            )
+        given[key] = item
         parts = [parse_value(v) for v in value.split(",")]
         settings[key] = tuple(parts) if "," in value else parts[0]
     return settings
@@ -226,3 +238,48 @@ def parse_value(text: str):
         except ValueError:
             pass
     return {"true": True, "false": False}.get(text.lower(), text)
+
+
+RESUME_OPTIONS = {"resume", "restart", "progress", "no-progress", "dry-run", "eval-workers"}
+"""What ``--resume`` takes beside it: the run's own config.json says everything else."""
+
+
+def refuse_ignored_with_resume(argv: list[str], allowed: set[str] = RESUME_OPTIONS) -> None:
+    """``ValueError`` naming the flags of ``argv`` that ``--resume`` would ignore (``--seed``,
+    ``--steps``, ``--set``, ...): a resumed run keeps the settings it was started with, so a flag
+    that seems to change them is refused rather than dropped without a word."""
+    given = []
+    for token in argv:
+        name = token[2:].split("=", 1)[0] if token.startswith("--") else None
+        if name and name not in allowed and "--" + name not in given:
+            given.append("--" + name)
+    if given:
+        raise ValueError(
+            f"--resume continues a run with the settings in its config.json, so {', '.join(given)}"
+            " would be ignored: leave them out, or start a new run (without --resume) in another"
+            " --run-dir"
+        )
+
+
+def refuse_repeated_flags(argv: list[str]) -> None:
+    """``ValueError`` naming a flag ``argv`` gives twice (``--seed 1 --seed 2``, ``--set a=1
+    --set a=2``, ``--progress --no-progress``): the parser would keep the last without a word."""
+    seen: dict[str, str] = {}
+    for token in argv:
+        if not token.startswith("--") or token == "--":
+            continue
+        flag = token.split("=", 1)[0]
+        key = flag.removeprefix("--no-").removeprefix("--")
+        if key in seen and seen[key] != flag:
+            raise ValueError(f"{seen[key]} and {flag} are both given; give one of them")
+        if key in seen:
+            raise ValueError(
+                f"{flag} is given twice; give each flag once (a flag of several values takes "
+                "them all after it, e.g. --set a=1 b=2)"
+            )
+        seen[key] = flag
+
+
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C, said in one line with what to do next (``eabc`` exits with 130, as a shell does
+    for SIGINT): ``interrupted at step 3000; resume with: eabc train --resume runs/x``."""

@@ -10,7 +10,13 @@ from typing import Annotated
 
 import tyro
 
-from eabc.cli.options import AgentOverrides, SACTrainOptions, TrainOptions, parse_settings
+from eabc.cli.options import (
+    AgentOverrides,
+    Interrupted,
+    SACTrainOptions,
+    TrainOptions,
+    parse_settings,
+)
 from eabc.ranges import Positive, PositiveNumber, Seed
 
 
@@ -28,9 +34,11 @@ class Train:
     """Where the run's config, checkpoint, log.csv, TensorBoard events and curve.png go
     (default runs/DATASET_ALGO_seedS)."""
     resume: str | None = None
-    """Continue the run in this directory from its last checkpoint (other options are ignored).
-    A finished run is left as it is; a run whose checkpoint is missing although its log.csv or
-    summary.json shows it got past its first checkpoint is refused (see --restart)."""
+    """Continue the run in this directory from its last checkpoint, with the settings it was
+    started with (other options than --restart, --no-progress and --dry-run are refused: they
+    would be ignored). A finished run is left as it is; a run whose checkpoint is missing although
+    its log.csv or summary.json shows it got past its first checkpoint is refused (see
+    --restart)."""
     restart: bool = False
     """With --resume, for a run whose checkpoint is missing: train it again from step 0, deleting
     its log.csv and summary.json (without this flag such a run is refused, never retrained)."""
@@ -65,7 +73,8 @@ class Sac:
     run_dir: str | None = None
     """Where the run goes (default runs/sac_ENV_seedS)."""
     resume: str | None = None
-    """Continue the run in this directory from its last checkpoint (other options are ignored)."""
+    """Continue the run in this directory from its last checkpoint, with its own settings (with
+    other options than --no-progress it is refused: they would be ignored)."""
     alpha: PositiveNumber | None = None
     """Fixed entropy temperature instead of automatic tuning (default: tuning toward -dim(A);
     walker2d: fixed 0.2, see README)."""
@@ -89,11 +98,20 @@ def sac_agent_config(cmd: Sac):
     return agent
 
 
-def _start_or_resume_then_train(cmd, resume, start, train) -> dict:
-    """``--resume DIR`` or a new run, trained to its end; the summary printed as JSON."""
+def _start_or_resume_then_train(cmd, resume, start, train, command: str) -> dict:
+    """``--resume DIR`` or a new run, trained to its end; the summary printed as JSON. Ctrl-C
+    while it trains ends in one line that says how to continue (the checkpoints are written
+    atomically, so the resumed run ends as an uninterrupted one would)."""
     run = resume(cmd.resume) if cmd.resume else start()
     print(f"run directory: {run.run_dir}", file=sys.stderr)
-    summary = train(run, progress=cmd.progress)
+    try:
+        summary = train(run, progress=cmd.progress)
+    except KeyboardInterrupt:
+        step = run.step if hasattr(run, "step") else int(run.state["step"])
+        raise Interrupted(
+            f"interrupted at step {step}; resume with: eabc {command} --resume {run.run_dir} "
+            "(it continues from its last checkpoint)"
+        ) from None
     print(json.dumps(summary, indent=2))
     return summary
 
@@ -106,7 +124,7 @@ def run_sac(cmd: Sac) -> dict:
         run_dir = cmd.run_dir or f"runs/sac_{config.env}_seed{config.seed}"
         return online.start_sac(config, run_dir, sac_agent_config(cmd))
 
-    return _start_or_resume_then_train(cmd, online.resume_sac, start, online.train_sac)
+    return _start_or_resume_then_train(cmd, online.resume_sac, start, online.train_sac, "sac")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -140,7 +158,7 @@ def run_train(cmd: Train) -> dict:
             print(f"{run_dir} is finished ({run.step} steps): nothing to train", file=sys.stderr)
         return run
 
-    summary = _start_or_resume_then_train(cmd, resume, start, trainer.train)
+    summary = _start_or_resume_then_train(cmd, resume, start, trainer.train, "train")
     if summary.get("diverged_step") is not None:
         raise RuntimeError(f"training stopped at step {summary['diverged_step']} on NaN/inf")
     return summary
@@ -158,11 +176,12 @@ def train_plan(cmd: Train) -> dict[str, str]:
     from eabc import timing  # noqa: PLC0415
     from eabc.agents import get_algorithm  # noqa: PLC0415
     from eabc.data import generate, sources  # noqa: PLC0415
-    from eabc.experiments.spec import RunSpec  # noqa: PLC0415
+    from eabc.evaluation import make_env  # noqa: PLC0415
+    from eabc.experiments.spec import TRAIN_FIELDS, RunSpec  # noqa: PLC0415
     from eabc.experiments.sweep import estimate_seconds  # noqa: PLC0415
     from eabc.training import trainer  # noqa: PLC0415
     from eabc.training.checkpoint import CONFIG  # noqa: PLC0415
-    from eabc.training.run import check_evaluation_env  # noqa: PLC0415
+    from eabc.training.run import check_evaluation_env, check_memory  # noqa: PLC0415
 
     if cmd.resume:
         run = trainer.resume(cmd.resume, lock=False)  # reads only
@@ -186,6 +205,8 @@ def train_plan(cmd: Train) -> dict[str, str]:
             check_evaluation_env(config)  # --env against the task's shapes, as training will
             size = generate.default_size(config.dataset)
             dataset_name, env_id = config.dataset, None
+            spaces = make_env(_task_env(config.dataset))
+            shape = size, spaces.observation_space.shape[0], spaces.action_space.shape[0]
             took = generate.making_time(config.dataset)
             data = f"{config.dataset}: made first into {path} ({size:,} transitions, {took})"
         else:
@@ -193,17 +214,20 @@ def train_plan(cmd: Train) -> dict[str, str]:
             check_evaluation_env(config, dataset)  # its spaces against the data's
             dataset_name, env_id = dataset.name, dataset.env_id
             data = f"{dataset.name} ({dataset.size:,} transitions) from {config.dataset}"
+            shape = dataset.size, dataset.obs_dim, dataset.act_dim
         overrides = {
             k: v for k, v in dataclasses.asdict(cmd.agent).items() if v is not None
         } | parse_settings(cmd.set)
         agent_config = trainer.resolve_agent_config(
             config.algo, dataset_name, overrides, config.steps
         )
+        size, obs_dim, act_dim = shape
+        check_memory(config, agent_config, obs_dim, act_dim, size)  # as start() checks it
         env_id = config.env or env_id or _task_env(dataset_name)
         steps_done = 0
-    spec = RunSpec(
+    spec = RunSpec(  # every train setting, so that the estimate checks the run's own config
         config.dataset, config.algo, config.seed, tuple(sorted(overrides.items())),
-        tuple((f, getattr(config, f)) for f in ("steps", "eval_interval", "eval_episodes")),
+        tuple((f, getattr(config, f)) for f in sorted(TRAIN_FIELDS) if f != "cache_dir"),
     )  # fmt: skip
     seconds, speed = estimate_seconds(spec, steps_done), timing.REFERENCE
     if seconds > 10:  # long enough for this host's speed to matter: probe it

@@ -34,6 +34,7 @@ import json
 import math
 import os
 import sqlite3
+import sys
 import tempfile
 from pathlib import Path
 
@@ -296,17 +297,26 @@ def store(root: str | Path, runs: pd.DataFrame, evals: pd.DataFrame) -> None:
     """Write ``root/results.sqlite`` (atomically) from :func:`collect`'s tables; a command that
     refuses its other inputs calls this only after checking them, so that it changes nothing."""
     root = Path(root)
-    if root.is_dir():
+    if not root.is_dir():
+        return
+    if not os.access(root, os.W_OK):  # a read-only root is read, never written
+        print(f"note: {root} is read-only: {DATABASE} not updated", file=sys.stderr)
+        return
+    tmp = None
+    try:
         fd, tmp = tempfile.mkstemp(dir=root, prefix=f".{DATABASE}.", suffix=".tmp")
         os.fchmod(fd, file_mode())  # as open() would, not mkstemp's 0600
         os.close(fd)
-        try:
-            with sqlite3.connect(tmp) as db:
-                runs.to_sql("runs", db, index=False, if_exists="replace")
-                evals.to_sql("evaluations", db, index=False, if_exists="replace")
-            db.close()
-            os.replace(tmp, root / DATABASE)
-        finally:
+        with sqlite3.connect(tmp) as db:
+            runs.to_sql("runs", db, index=False, if_exists="replace")
+            evals.to_sql("evaluations", db, index=False, if_exists="replace")
+        db.close()
+        os.replace(tmp, root / DATABASE)
+    except (OSError, sqlite3.Error) as error:  # the store is a cache of the run directories
+        why = getattr(error, "strerror", None) or str(error)
+        print(f"warning: {root / DATABASE} not updated: {why}", file=sys.stderr)
+    finally:
+        if tmp is not None:
             Path(tmp).unlink(missing_ok=True)
 
 

@@ -249,7 +249,7 @@ class SweepSpec(pydantic.BaseModel):
     @pydantic.field_validator("steps", mode="before")
     @classmethod
     def _steps(cls, value):
-        return ranges.check(value, ranges.Positive, "steps")
+        return ranges.check(value, ranges.Steps, "steps")
 
     @pydantic.field_validator("grid", mode="before")
     @classmethod
@@ -346,6 +346,8 @@ def expand(spec: dict[str, Any]) -> list[RunSpec]:
         for algo in algos:
             fields = {f.name for f in dataclasses.fields(get_algorithm(algo).preset)}
             axes = {k: v for k, v in grid.items() if k in fields}
+            for key, values in axes.items():
+                _one_way_each(algo, key, values)
             for values in itertools.product(*axes.values()):
                 overrides = _frozen(dict(zip(axes, values)))
                 try:
@@ -366,6 +368,25 @@ def expand(spec: dict[str, Any]) -> list[RunSpec]:
     for run in runs:  # a run listed twice keeps its first place
         unique.setdefault(run.run_id, run)
     return list(unique.values())
+
+
+def _one_way_each(algo: str, key: str, values: list) -> None:
+    """Refuse a grid axis that lists one value written two ways (``[1, 1.0]``, ``[5, "5"]``):
+    the algorithm reads them as one setting, so the sweep would train the same run twice under
+    two labels. (A value listed twice as the same text is one run, as a seed listed twice is.)"""
+    preset = get_algorithm(algo).preset
+    seen: dict[Any, Any] = {}
+    for value in values:
+        try:
+            read = getattr(validation.validate(preset, algo, {key: _freeze(value)}), key)
+        except validation.SettingError as error:
+            raise ValueError(f"grid: {error}") from None
+        first = seen.setdefault(repr(read), value)
+        if _text(_freeze(first)) != _text(_freeze(value)):
+            raise ValueError(
+                f"grid.{key} lists {first!r} and {value!r}, one {algo} setting ({key}={read!r}) "
+                "written two ways, which would train it twice under two labels; list it once"
+            )
 
 
 def _dataset(name: str) -> str:

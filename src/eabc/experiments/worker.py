@@ -44,6 +44,9 @@ def main(argv: list[str] | None = None) -> None:
     argv = sys.argv[1:] if argv is None else argv
     if os.environ.get(PARENT):
         watch_parent(int(os.environ[PARENT]))
+        # Ctrl-C reaches the whole process group: the sweep stops its workers itself (SIGTERM),
+        # so a worker does not die of it mid-run with a traceback in its log.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
     from eabc.experiments.sweep import execute  # noqa: PLC0415 (after the watch is armed)
 
     root, payload = argv

@@ -22,6 +22,7 @@ import functools
 import json
 import os
 import time
+import typing
 from pathlib import Path
 from typing import Any
 
@@ -49,39 +50,36 @@ class SACTrainConfig:
 
     env: str = "hopper"
     """hopper, halfcheetah, walker2d, or any Gymnasium id with a Box action space."""
-    seed: int = 0
+    seed: ranges.Seed = 0
     """Seeds the networks, the environment, exploration and batch sampling."""
-    steps: int = 1_000_000
+    steps: ranges.Steps = 1_000_000
     """Environment steps (one gradient step per environment step after update_after)."""
-    start_steps: int = 10_000
+    start_steps: ranges.NonNegativeSteps = 10_000
     """Uniform random actions for this many first steps."""
-    update_after: int = 1_000
+    update_after: ranges.NonNegativeSteps = 1_000
     """No gradient steps before the buffer holds this many transitions."""
-    update_every: int = 50
+    update_every: ranges.Steps = 50
     """Environment steps between bursts of as many gradient steps, compiled as one scan."""
-    batch_size: int = 256
+    batch_size: ranges.BatchSize = 256
     """Mini-batch size."""
-    eval_interval: int = 10_000
+    eval_interval: ranges.Steps = 10_000
     """Deterministic evaluation every this many steps."""
-    eval_episodes: int = 10
+    eval_episodes: ranges.Positive = 10
     """Episodes per evaluation."""
-    snapshot_interval: int = 10_000
+    snapshot_interval: ranges.Steps = 10_000
     """Keep the actor every this many steps (the checkpoint sequence for medium-replay data)."""
-    checkpoint_interval: int = 50_000
+    checkpoint_interval: ranges.Steps = 50_000
     """Save networks, optimisers and the replay buffer every this many steps."""
-    refill_steps: int = 100_000
+    refill_steps: ranges.NonNegativeSteps = 100_000
     """A run resumed without its replay buffer (a pack) first collects this many transitions with
     its current policy, without gradient steps and without counting them as training steps:
     gradient steps on the first ``update_after`` new transitions alone undo a trained policy."""
 
     def __post_init__(self):
-        positive = ("steps", "update_every", "batch_size", "eval_interval", "eval_episodes",
-                    "snapshot_interval", "checkpoint_interval")  # fmt: skip
-        for name in positive:
-            ranges.check(getattr(self, name), ranges.Positive, name)
-        for name in ("start_steps", "update_after", "refill_steps"):
-            ranges.check(getattr(self, name), ranges.NonNegative, name)
-        ranges.check(self.seed, ranges.Seed, "seed")
+        hints = typing.get_type_hints(SACTrainConfig, include_extras=True)
+        for field in dataclasses.fields(self):  # each number within its declared range
+            if ranges.constrained(hints[field.name]):
+                ranges.check(getattr(self, field.name), hints[field.name], field.name)
         for name in ("eval_interval", "snapshot_interval", "checkpoint_interval"):
             if getattr(self, name) % self.update_every:
                 raise ValueError(f"{name} must be a multiple of update_every={self.update_every}")
@@ -95,6 +93,11 @@ class ReplayBuffer:
     """Transitions in preallocated NumPy arrays (``terminals`` only where the episode ended for real)."""
 
     FIELDS = ("observations", "actions", "rewards", "next_observations", "terminals")
+
+    @staticmethod
+    def bytes(capacity: int, obs_dim: int, act_dim: int) -> int:
+        """What a buffer of ``capacity`` transitions allocates (float32 fields)."""
+        return 4 * capacity * (2 * obs_dim + act_dim + 2)
 
     def __init__(self, capacity: int, obs_dim: int, act_dim: int):
         self.size = 0
@@ -197,6 +200,8 @@ def _build(run_dir, config, agent_config, from_checkpoint) -> OnlineRun:
     env = make_env(config.env_id)
     obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
     max_action = float(env.action_space.high[0])
+    need = ReplayBuffer.bytes(config.steps, obs_dim, act_dim)  # every step's transition
+    ranges.check_memory([("--steps", str(config.steps), "the replay buffer", need)])
     init_key, loop_key = jax.random.split(jax.random.PRNGKey(config.seed))
     state = {
         "agent": sac.init(init_key, obs_dim, act_dim, agent_config),

@@ -116,20 +116,14 @@ def _train_config() -> type:
 @functools.cache
 def train_model() -> type[pydantic.BaseModel]:
     """TrainConfig's fields as a strict model: :data:`REQUIRED` required, the others with
-    TrainConfig's defaults; counts and intervals integers >= 1, the seed in its range, the algorithm
-    one this package has."""
+    TrainConfig's defaults; each number in the range TrainConfig declares for it (steps and
+    intervals in [1, 2**31 - 1], the seed in its range), the algorithm one this package has."""
     config = _train_config()
-    hints = typing.get_type_hints(config)
+    hints = typing.get_type_hints(config, include_extras=True)  # the ranges TrainConfig declares
     fields: dict[str, Any] = {}
     for field in dataclasses.fields(config):
-        hint = hints[field.name]
-        if field.name == "seed":
-            hint = ranges.Seed
-        elif hint is int:
-            hint = ranges.Positive
-        elif hint == int | None:
-            hint = ranges.Positive | None
-        fields[field.name] = (hint, ... if field.name in REQUIRED else field.default)
+        default = ... if field.name in REQUIRED else field.default
+        fields[field.name] = (hints[field.name], default)
 
     def known(value: str) -> str:
         if value not in ALGORITHMS:
