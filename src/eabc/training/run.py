@@ -20,6 +20,7 @@ import json
 import os
 import shutil
 import sys
+import typing
 from pathlib import Path
 from typing import Any, Literal
 
@@ -52,19 +53,19 @@ class TrainConfig:
     algo: str = "eabc"
     """Algorithm: eabc, eabc-ln, eabc-trust, eabc-robust, eabc-auto, eabc-quantile, td3bc, td3, bc, iql, cql, cql-lagrange, wpc,
     sac-n, edac, edac-10, bear, uwac, mopo, morel or rebrac."""
-    seed: int = 0
+    seed: ranges.Seed = 0
     """Seeds network initialisation and batch sampling; evaluation uses seed + 100."""
-    steps: int = 1_000_000
+    steps: ranges.Steps = 1_000_000
     """Gradient steps."""
-    batch_size: int | None = None
+    batch_size: ranges.BatchSize | None = None
     """Mini-batch size N; unset: the algorithm's (256; ReBRAC 1024)."""
-    eval_interval: int = 5000
+    eval_interval: ranges.Steps = 5000
     """Evaluate every this many gradient steps."""
-    eval_episodes: int = 10
+    eval_episodes: ranges.Positive = 10
     """Episodes per evaluation."""
-    log_interval: int = 1000
+    log_interval: ranges.Steps = 1000
     """Steps per compiled chunk: log rows and progress updates come this often."""
-    checkpoint_interval: int = 5000
+    checkpoint_interval: ranges.Steps = 5000
     """Save a checkpoint every this many steps (a multiple of log_interval)."""
     env: str | None = None
     """Gymnasium id for evaluation; by default the one the dataset names."""
@@ -82,12 +83,10 @@ class TrainConfig:
             )
         if self.batch_size is None:  # set here, so config.json records the size trained with
             object.__setattr__(self, "batch_size", get_algorithm(self.algo).batch_size)
-        positive = ("steps", "batch_size", "eval_interval", "eval_episodes", "log_interval",
-                    "checkpoint_interval")  # fmt: skip
-        for name in positive:
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
-        ranges.check(self.seed, ranges.Seed, "seed")
+        hints = typing.get_type_hints(TrainConfig, include_extras=True)
+        for field in dataclasses.fields(self):  # each number within its declared range
+            if ranges.constrained(hints[field.name]):
+                ranges.check(getattr(self, field.name), hints[field.name], field.name)
         for name in ("eval_interval", "checkpoint_interval"):
             value = getattr(self, name)
             if value % self.log_interval:
@@ -115,6 +114,50 @@ def check_cache_dir(path: str | Path, what: str) -> None:
             f"{what} {path} is not a directory{inside}: give a directory for the datasets and "
             "compiled programs (it is made if missing), or leave it unset for ~/.cache/eabc"
         )
+
+
+def memory_needed(
+    config: TrainConfig, agent_config: Any, obs_dim: int, act_dim: int, size: int
+) -> list[tuple[str, str, str, float]]:
+    """What a run keeps in memory while it trains, by the flag that sizes it (at least this
+    much; XLA's temporaries come on top): the dataset on the device, one batch with the
+    activations of its networks' layers, and the agent's state (networks and optimisers)."""
+    algorithm = get_algorithm(config.algo)
+    row = 4 * (2 * obs_dim + act_dim * (2 if algorithm.next_actions else 1) + 2)
+    networks = 1 + getattr(agent_config, "num_critics", 1)  # the actor and each critic
+    hidden = sum(getattr(agent_config, "hidden_dims", ()) or ())
+    shapes = jax.eval_shape(
+        lambda key: algorithm.init(key, obs_dim, act_dim, agent_config), jax.random.PRNGKey(0)
+    )
+    state = sum(leaf.size * leaf.dtype.itemsize for leaf in jax.tree.leaves(shapes))
+    return [
+        ("--batch-size", str(config.batch_size), "a batch with its activations",
+         config.batch_size * (row + 4 * hidden * networks)),
+        ("--dataset", config.dataset, f"the data ({size:,} transitions)", size * row),
+        ("--set hidden_dims/num_critics", "", f"{config.algo}'s networks and optimisers", state),
+    ]  # fmt: skip
+
+
+def device_memory() -> int | None:
+    """Bytes free on the accelerator JAX trains on; None on the CPU (the machine's memory)."""
+    device = jax.local_devices()[0]
+    if device.platform == "cpu":
+        return None
+    stats = device.memory_stats() or {}
+    if "bytes_limit" not in stats:
+        return None
+    return stats["bytes_limit"] - stats.get("bytes_in_use", 0)
+
+
+def check_memory(
+    config: TrainConfig, agent_config: Any, obs_dim: int, act_dim: int, size: int
+) -> None:
+    """Refuse, before a run directory is written, a run whose batch, data and networks
+    (:func:`memory_needed`) would not fit in the memory free where it trains, naming the flag of
+    the largest part (``--batch-size``, ``--dataset``) in one line."""
+    ranges.check_memory(
+        memory_needed(config, agent_config, obs_dim, act_dim, size), device_memory()
+    )
 
 
 def check_evaluation_env(config: TrainConfig, dataset: Dataset | None = None) -> None:
@@ -201,6 +244,7 @@ def start(
     agent_config = resolve_agent_config(
         config.algo, dataset.name, agent_overrides or {}, config.steps
     )
+    check_memory(config, agent_config, dataset.obs_dim, dataset.act_dim, dataset.size)
     run = _build(run_dir, config, agent_config, dataset, state=None)
     run.lock = RunLock(run_dir).acquire()
     try:
