@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+import typing
 
 import numpy as np
 import pandas as pd
@@ -80,7 +81,7 @@ def results():
 def written(results, tmp_path_factory):
     runs, evaluations = results
     out = tmp_path_factory.mktemp("report")
-    return out, report.write_report(runs, evaluations, out)
+    return out, report.write_report(runs, evaluations, out, formats=report.FORMATS)
 
 
 # Table 1
@@ -279,6 +280,47 @@ def test_write_report_writes_every_file_and_the_table_matches_the_input(results,
     assert paths["table.md"].read_text() in text and "IQM" in text
 
 
+def test_a_report_is_png_and_markdown_unless_asked_for_more(results, tmp_path, quick_figures):
+    """One format per figure and table by default: no PDF, SVG, HTML or LaTeX, and no link in
+    report.md to a file that was not written; each asked-for format adds its files alone."""
+    runs, evaluations = results
+    paths = report.write_report(runs, evaluations, tmp_path / "default")
+    assert {p.suffix for p in (tmp_path / "default").iterdir()} == {".png", ".md", ".csv"}
+    assert set(paths) == {p.name for p in (tmp_path / "default").iterdir()}
+    text = paths["report.md"].read_text()
+    for target in re.findall(r"\]\(([^)#]+)\)", text):
+        assert (tmp_path / "default" / target).is_file(), target
+    assert "Figures as PNG (300 dpi)." in text and "table.html" not in text
+
+    some = report.write_report(runs, evaluations, tmp_path / "some", formats=("svg", "tex"))
+    extra = {n for n in some if not n.endswith((".png", ".md", ".csv"))}
+    figures_ = {n.removesuffix(".png") for n in paths if n.endswith(".png")}
+    assert extra == {"table.tex"} | {f"{name}.svg" for name in figures_}
+    assert (
+        "Also as [LaTeX](table.tex). Figures as PNG (300 dpi) and SVG."
+        in some["report.md"].read_text()
+    )
+    with pytest.raises(ValueError, match=r"no report format \[.docx.\]; there are"):
+        report.write_report(runs, evaluations, tmp_path / "bad", formats=("docx",))
+
+
+def test_eabc_report_formats_flag_offers_the_reports_formats(tmp_path):
+    from eabc.cli.experiments import Report, ReportFormat  # noqa: PLC0415
+
+    assert typing.get_args(ReportFormat) == report.FORMATS
+    assert Report(root="r").formats == report.DEFAULT_FORMATS
+    with pytest.raises(SystemExit):
+        main(["report", str(tmp_path), "--formats", "docx"])
+
+
+def test_the_html_page_shows_png_figures_when_no_svg_was_written(results, tmp_path, quick_figures):
+    runs, evaluations = results
+    paths = report.write_report(runs, evaluations, tmp_path, formats=("html",))
+    page = paths["report.html"].read_text()
+    assert '<img src="curves.png"' in page and ".svg" not in page and ".pdf" not in page
+    assert "table.html" in paths and "table.tex" not in paths
+
+
 def test_bad_input_gives_clear_errors(results):
     runs, evaluations = results
     with pytest.raises(ValueError, match="final_score"):
@@ -430,7 +472,7 @@ def test_runs_without_reference_scores_are_reported_in_raw_return(results, tmp_p
     recommended = published.assign(algo="eabc-ln", run_id=published["run_id"] + "-ln")
     runs = pd.concat([runs, recommended], ignore_index=True)
     runs = runs.assign(q_out_of_range_step=np.nan, q_mean_max=np.nan)  # for failures.md
-    paths = report.write_report(runs, evaluations, tmp_path)
+    paths = report.write_report(runs, evaluations, tmp_path, formats=("html",))
     table = paths["table.md"].read_text()
     assert table.startswith("Raw return: these runs have no reference scores")
     rows = markdown_rows(table)
@@ -449,7 +491,7 @@ def test_a_dataset_without_reference_scores_gets_a_section_of_returns(
     results, tmp_path, quick_figures
 ):
     runs, evaluations = without_scores(*results, datasets=["hopper-random"])
-    paths = report.write_report(runs, evaluations, tmp_path)
+    paths = report.write_report(runs, evaluations, tmp_path, formats=("html",))
     assert set(markdown_rows(paths["table.md"].read_text())) == {"walker2d-medium", "Average"}
     returns = paths["returns_table.md"].read_text()
     assert returns.startswith("Raw return") and "hopper-random" in returns

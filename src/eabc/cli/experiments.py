@@ -109,9 +109,14 @@ class Results:
     """Print CSV instead of a table."""
 
 
+ReportFormat = Literal["png", "md", "pdf", "svg", "html", "tex"]
+"""eabc.experiments.report.FORMATS, spelled out so that --help needs no import of the report."""
+
+
 @dataclasses.dataclass(frozen=True)
 class Report:
-    """Make the paper's tables (Markdown, HTML, LaTeX) and figures from a sweep's results."""
+    """Make the paper's tables (Markdown) and figures (PNG) from a sweep's results; --formats
+    adds PDF and SVG figures, HTML and LaTeX tables."""
 
     root: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="ROOT")]
     out: str | None = None
@@ -135,6 +140,10 @@ class Report:
     """Leave out the runs that have not reached their steps yet (partial), e.g. to commit a
     report while its sweep still runs: a partial run would be scored on its evaluations so far,
     and its row would stand in the committed report until a later copy trained more."""
+    formats: tuple[ReportFormat, ...] = ("png", "md")
+    """Formats to write: PNG figures and Markdown tables always (report.md links them); add pdf
+    and svg for every figure as a vector graphic, html for table.html and report.html (the
+    whole report as one page), tex for table.tex, e.g. --formats png md pdf svg html tex."""
 
 
 def _narrow_variants(spec: dict, algos: tuple[str, ...], datasets: tuple[str, ...]) -> dict:
@@ -386,6 +395,8 @@ def run_report(cmd: Report) -> None:
     if paths.expand(cmd.root).is_dir():
         results.store(cmd.root, every, evaluations)
     fix = cmd.fix or report.RECOMMENDED
-    written = report.write_report(runs, evaluations, out, cmd.baseline, fix, repeats=repeats)
+    written = report.write_report(
+        runs, evaluations, out, cmd.baseline, fix, repeats=repeats, formats=cmd.formats
+    )
     for name, path in written.items():
         print(f"{name}: {path}")

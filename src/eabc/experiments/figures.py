@@ -68,8 +68,9 @@ def _colors(keys: Sequence[str]) -> dict[str, tuple]:
 
 
 PRINT_DPI = 300
-"""PNG resolution: print quality; the PDF and SVG beside each PNG are vector graphics."""
+"""PNG resolution: print quality; a PDF or SVG asked for beside a PNG is a vector graphic."""
 VECTOR_FORMATS = (".pdf", ".svg")
+"""The vector formats a figure can also be written in (each plot function's ``vector``)."""
 
 
 def legend_columns(labels: list[str], width_inches: float, most: int = 6) -> int:
@@ -80,12 +81,16 @@ def legend_columns(labels: list[str], width_inches: float, most: int = 6) -> int
     return max(1, min(most, len(labels), fits))
 
 
-def _save(fig, path: str | Path) -> Path:
-    """The figure as ``path`` (PNG at print resolution) and as PDF and SVG beside it."""
+def _save(fig, path: str | Path, vector: Sequence[str] = ()) -> Path:
+    """The figure as ``path`` (PNG at print resolution) and in each of the ``vector`` formats
+    (``.pdf``, ``.svg``) beside it."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=PRINT_DPI, bbox_inches="tight")  # nothing outside the canvas is lost
-    for suffix in VECTOR_FORMATS:
+    unknown = set(vector) - set(VECTOR_FORMATS)
+    if unknown:
+        raise ValueError(f"no vector format {sorted(unknown)}; there are {list(VECTOR_FORMATS)}")
+    for suffix in vector:
         undated = {"Date": None} if suffix == ".svg" else {"CreationDate": None}  # reproducible
         fig.savefig(path.with_suffix(suffix), metadata=undated, bbox_inches="tight")
     return path
@@ -128,6 +133,7 @@ def _plot_curves(
     title: str,
     names=str,
     ylabel: str = "normalised score",
+    vector: Sequence[str] = (),
 ) -> Path:
     from matplotlib.ticker import EngFormatter  # noqa: PLC0415
 
@@ -163,7 +169,7 @@ def _plot_curves(
             ncol=legend_columns(labels, fig.get_figwidth()),
         )
     fig.suptitle(title)
-    return _save(fig, path)
+    return _save(fig, path, vector)
 
 
 def plot_learning_curves(
@@ -172,9 +178,10 @@ def plot_learning_curves(
     path: str | Path,
     curve: str = "score",
     ylabel: str = "normalised score",
+    vector: Sequence[str] = (),
 ) -> Path:
     """Figure 1: per dataset, the score (or ``curve``: ``return_mean``) of each algorithm label
-    over gradient steps.
+    over gradient steps; ``vector``: the formats (``.pdf``, ``.svg``) written beside the PNG.
 
     The line is the mean over seeds, the band +-1 std over seeds (ddof 1; none with one seed);
     the title says over how many (:func:`band_text`).
@@ -182,8 +189,9 @@ def plot_learning_curves(
     runs = labelled(runs)
     stats = _curve_stats(runs, evaluations, "label", curve)
     title = f"Learning curves: {band_text(stats, 'label')}"
+    labels = ordered_labels(runs)
     return _plot_curves(
-        stats, "label", ordered_labels(runs), path, title, names=display_name, ylabel=ylabel
+        stats, "label", labels, path, title, names=display_name, ylabel=ylabel, vector=vector
     )
 
 
@@ -285,6 +293,7 @@ def plot_ablation(
     algo: str = "eabc",
     curve: str = "score",
     ylabel: str = "normalised score",
+    vector: Sequence[str] = (),
 ) -> Path:
     """Figures 2-4: per dataset, learning curves of ``algo`` for each value of ``parameter``.
 
@@ -299,10 +308,10 @@ def plot_ablation(
     stats = _curve_stats(sub, evaluations, "key", curve)
     keys = [_value_label(parameter, v, algo) for v in values]
     title = f"Ablation of {parameter} ({display_name(algo)})\n{band_text(stats, 'key')}"
-    return _plot_curves(stats, "key", keys, path, title, ylabel=ylabel)
+    return _plot_curves(stats, "key", keys, path, title, ylabel=ylabel, vector=vector)
 
 
-def plot_runtime(runs: pd.DataFrame, path: str | Path) -> Path:
+def plot_runtime(runs: pd.DataFrame, path: str | Path, vector: Sequence[str] = ()) -> Path:
     """Figure 5: bars of wall-clock time per 1M gradient steps per label, std over runs as errors.
 
     The unit is hours, or minutes when every bar is under an hour.
@@ -333,7 +342,7 @@ def plot_runtime(runs: pd.DataFrame, path: str | Path) -> Path:
         tick.set(rotation=30, ha="right")
     if not labels:
         ax.text(0.5, 0.5, "no runs with a measured speed", ha="center", va="center")
-    return _save(fig, path)
+    return _save(fig, path, vector)
 
 
 def plot_performance_profiles(
@@ -343,6 +352,7 @@ def plot_performance_profiles(
     taus: Sequence[float] | None = None,
     reps: int = 2000,
     seed: int = 0,
+    vector: Sequence[str] = (),
 ) -> Path:
     """Score distributions: per label, the fraction of runs above each score, with a 95% CI band."""
     scores = task_scores(runs, metric)
@@ -366,7 +376,7 @@ def plot_performance_profiles(
     ax.set_title("Performance profiles (95% stratified-bootstrap CIs)")
     if scores:
         ax.legend(fontsize="small")
-    return _save(fig, path)
+    return _save(fig, path, vector)
 
 
 def _ablation_algo(runs: pd.DataFrame, parameter: str) -> str | None:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import html
 import re
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -42,6 +43,34 @@ from eabc.experiments.tables import (
 
 # ----------------------------------------------------------------------------------------------
 # The report
+
+FORMATS = ("png", "md", "pdf", "svg", "html", "tex")
+"""What a report can be written in: PNG figures and Markdown tables always (``report.md`` links
+them); on request, PDF and SVG beside every figure, HTML and LaTeX beside the score table, and
+``report.html``, the whole report as one page (``eabc report --formats``)."""
+DEFAULT_FORMATS = ("png", "md")
+"""One format per figure (PNG) and per table (Markdown); the others are made on demand."""
+
+
+def check_formats(formats: Sequence[str]) -> tuple[str, ...]:
+    """``formats`` with PNG and Markdown added, each once; an unknown one is refused, naming
+    those there are."""
+    unknown = [f for f in formats if f not in FORMATS]
+    if unknown:
+        raise ValueError(f"no report format {unknown}; there are {list(FORMATS)}")
+    return tuple(f for f in FORMATS if f in {*DEFAULT_FORMATS, *formats})
+
+
+def _other_formats(formats: Sequence[str]) -> str:
+    """The score table's caption: where the same table, the report and the figures are in the
+    other ``formats`` written."""
+    tables = [f"[{n}](table.{e})" for e, n in (("html", "HTML"), ("tex", "LaTeX")) if e in formats]
+    text = f" Also as {' and '.join(tables)}" if tables else ""
+    if "html" in formats:
+        text += "; the whole report as a page: [report.html](report.html)"
+    kinds = ["PNG (300 dpi)", *(e.upper() for e in ("pdf", "svg") if e in formats)]
+    listed = ", ".join(kinds[:-1]) + " and " + kinds[-1] if len(kinds) > 1 else kinds[0]
+    return f"{text}{'.' if text else ''} Figures as {listed}."
 
 
 def vector_extensions(machines: pd.Series) -> list[str]:
@@ -134,29 +163,27 @@ def _metric_sections(
     fix: str,
     write,
     prefix: str = "",
+    formats: Sequence[str] = DEFAULT_FORMATS,
 ) -> tuple[pd.DataFrame, dict]:
     """Table 1, the comparison with ``baseline``, published EABC beside ``fix`` and the
     stability table of ``runs`` in ``metric``, each written to its file (``PREFIXtable.md``,
-    ...); returns the table and the report's text of each, by name. A comparison that cannot be
-    made says why in its place."""
+    and ``.html`` / ``.tex`` where ``formats`` asks); returns the table and the report's text of
+    each, by name. A comparison that cannot be made says why in its place."""
     table = score_table(runs, metric.column)
     heading = "Scores" if metric is SCORE else "Returns"
     # A table of returns says so wherever it is read, not only in report.md.
     note = "" if metric is SCORE else f"{metric.title}.\n"
     write(f"{prefix}table.md", (note and note + "\n") + to_markdown(table))
-    body = (note and f'<p class="note">{html.escape(note.strip())}</p>\n') + to_html(table)
-    write(
-        f"{prefix}table.html",
-        html_page(f"{heading} ({paper_table(runs['dataset'].unique())})", body),
-    )
-    write(f"{prefix}table.tex", (note and f"% {note}") + to_latex(table))
+    if "html" in formats:
+        body = (note and f'<p class="note">{html.escape(note.strip())}</p>\n') + to_html(table)
+        title = f"{heading} ({paper_table(runs['dataset'].unique())})"
+        write(f"{prefix}table.html", html_page(title, body))
+    if "tex" in formats:
+        write(f"{prefix}table.tex", (note and f"% {note}") + to_latex(table))
     stability = stability_to_markdown(stability_table(runs, metric.column), metric.name)
     write(f"{prefix}stability.md", stability)
     thin = thin_evidence(table)
-    links = (
-        " Also as [HTML](table.html) and [LaTeX](table.tex); the whole report as a page: "
-        "[report.html](report.html). Figures as PNG (300 dpi), PDF and SVG."
-    )
+    links = _other_formats(formats)
     caption = (
         f"{metric.title}: {evidence(runs, evaluations, table, metric)}; best mean per row in "
         f"bold; the Average row averages the per-dataset means and stds.{'' if prefix else links}\n"
@@ -208,21 +235,25 @@ def write_report(
     baseline: str | None = None,
     fix: str = RECOMMENDED,
     repeats: pd.DataFrame | None = None,
+    formats: Sequence[str] = DEFAULT_FORMATS,
 ) -> dict[str, Path]:
     """Every table and figure into ``out_dir``, and ``report.md`` that shows them all.
 
-    Writes ``table.{md,html,tex}``, ``aggregate.md``, ``curves.png``, ``profiles.png``,
-    ``runtime.png``, ``ablation_PARAMETER.png`` for each parameter that some algorithm's runs vary
-    (EABC's first; every figure also as ``.pdf`` and ``.svg``), ``report.md`` and ``report.html``
-    (a standalone page), and ``comparison.md``: every label against ``baseline`` (default
+    Writes ``table.md``, ``aggregate.md``, ``curves.png``, ``profiles.png``, ``runtime.png``,
+    ``ablation_PARAMETER.png`` for each parameter that some algorithm's runs vary (EABC's
+    first), ``report.md``, and ``comparison.md``: every label against ``baseline`` (default
     TD3+BC when the sweep ran it), dataset by dataset; ``failures.md`` when published EABC
     (label ``eabc``) and ``fix`` both ran: the one beside the other, where the published rule
     fails and the ensemble's spread at the policy's actions as it did. Returns the paths by file
     name. ``repeats`` (:func:`eabc.experiments.results.repeats`): runs trained more than once,
-    kept as ``repeats.csv`` and shown with whether their copies agree.
+    kept as ``repeats.csv`` and shown with whether their copies agree. ``formats``
+    (:data:`FORMATS`) adds ``pdf`` and ``svg`` beside every figure, ``html`` (``table.html`` and
+    ``report.html``, a standalone page) and ``tex`` (``table.tex``) to the PNG and Markdown.
     """
     from eabc.experiments import figures  # noqa: PLC0415 (figures imports this module)
 
+    formats = check_formats(formats)
+    vector = tuple(f".{f}" for f in formats if f".{f}" in figures.VECTOR_FORMATS)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths: dict[str, Path] = {}
@@ -240,16 +271,18 @@ def write_report(
     # (a section of their own beside the scores, or the whole report when no run has a score).
     metric, main = (SCORE, scored) if raw.empty or _has(scored, SCORE) else (RETURN, runs)
     baseline = baseline or compare.default_baseline(runs)
-    table, results = _metric_sections(main, evaluations, metric, baseline, fix, write)
+    table, results = _metric_sections(
+        main, evaluations, metric, baseline, fix, write, formats=formats
+    )
     tables = [table]
     returns = []
     if main is scored and not raw.empty:
         raw_table, raw_results = _metric_sections(
-            raw, evaluations, RETURN, baseline, fix, write, "returns_"
+            raw, evaluations, RETURN, baseline, fix, write, "returns_", formats
         )
         tables.append(raw_table)
         paths["returns_curves.png"] = figures.plot_learning_curves(
-            raw, evaluations, out / "returns_curves.png", RETURN.curve, RETURN.name
+            raw, evaluations, out / "returns_curves.png", RETURN.curve, RETURN.name, vector
         )
         returns = [
             "## Returns of the runs without reference scores\n",
@@ -266,7 +299,9 @@ def write_report(
     if metric is SCORE:
         aggregate = aggregate_to_markdown(aggregate_table(main))
         write("aggregate.md", aggregate)
-        paths["profiles.png"] = figures.plot_performance_profiles(main, out / "profiles.png")
+        paths["profiles.png"] = figures.plot_performance_profiles(
+            main, out / "profiles.png", vector=vector
+        )
         aggregate = [aggregate, "![Performance profiles](profiles.png)\n"]
     else:
         aggregate = [
@@ -276,7 +311,7 @@ def write_report(
         ]
     progress.say("report: figures (learning curves, ablations, runtime)")
     paths["curves.png"] = figures.plot_learning_curves(
-        main, evaluations, out / "curves.png", metric.curve, _axis(metric)
+        main, evaluations, out / "curves.png", metric.curve, _axis(metric), vector
     )
     ablations = []
     for parameter in ABLATION_PARAMETERS:
@@ -284,12 +319,12 @@ def write_report(
         if algo is not None:
             name = f"ablation_{parameter}.png"
             paths[name] = figures.plot_ablation(
-                main, evaluations, parameter, out / name, algo, metric.curve, _axis(metric)
+                main, evaluations, parameter, out / name, algo, metric.curve, _axis(metric), vector
             )
             ablations.append(f"### {parameter} ({display_name(algo)})\n\n![{parameter}]({name})\n")
-    paths["runtime.png"] = figures.plot_runtime(runs, out / "runtime.png")
+    paths["runtime.png"] = figures.plot_runtime(runs, out / "runtime.png", vector)
     for name in [n for n in paths if n.endswith(".png")]:
-        for suffix in figures.VECTOR_FORMATS:
+        for suffix in vector:
             paths[name.removesuffix(".png") + suffix] = out / (name.removesuffix(".png") + suffix)
     thin = thin_evidence(table)
 
@@ -377,7 +412,8 @@ def write_report(
         "![Runtime](runtime.png)\n",
     ]
     write("report.md", "\n".join(sections))
-    write("report.html", report_page(sections, tables))
+    if "html" in formats:
+        write("report.html", report_page(sections, tables, formats))
     progress.say(f"report: done in {timing.duration(time.perf_counter() - started)}")
     return paths
 
@@ -444,9 +480,12 @@ def _markdown_table_html(text: str) -> str:
     return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
 
 
-def report_page(sections: list[str], tables: list[pd.DataFrame]) -> str:
+def report_page(
+    sections: list[str], tables: list[pd.DataFrame], formats: Sequence[str] = FORMATS
+) -> str:
     """``report.md``'s content as one styled page: tables as tables (score tables, ``tables``,
-    in their own renderer), figures as SVG."""
+    in their own renderer), figures as SVG where ``formats`` has it (else PNG), each linking its
+    PDF where ``formats`` has that."""
     score_tables = {to_markdown(t).strip(): to_html(t) for t in tables}
     parts = []
     blocks = [b.strip() for section in sections[1:] for b in re.split(r"\n\s*\n", section)]
@@ -455,7 +494,7 @@ def report_page(sections: list[str], tables: list[pd.DataFrame]) -> str:
             level = len(text) - len(text.lstrip("#"))
             parts.append(f"<h{level}>{html.escape(text[level:].strip())}</h{level}>")
         elif text.startswith("!["):
-            parts.extend(_figures_html(text))
+            parts.extend(_figures_html(text, formats))
         elif text.startswith("|"):
             parts.append(score_tables.get(text) or _markdown_table_html(text))
         elif text.startswith("**Warning:**"):
@@ -465,14 +504,15 @@ def report_page(sections: list[str], tables: list[pd.DataFrame]) -> str:
     return html_page("Experiment report", "\n".join(parts))
 
 
-def _figures_html(text: str) -> list[str]:
+def _figures_html(text: str, formats: Sequence[str]) -> list[str]:
     out = []
     for alt, target in re.findall(r"!\[([^\]]*)\]\(([^)]+)\)", text):
-        vector = target.removesuffix(".png") + ".svg"
+        stem = html.escape(target.removesuffix(".png"))
+        image = f"{stem}.svg" if "svg" in formats else html.escape(target)
+        pdf = f' (<a href="{stem}.pdf">PDF</a>)' if "pdf" in formats else ""
         out.append(
-            f'<figure><a href="{html.escape(target)}"><img src="{html.escape(vector)}" '
-            f'alt="{html.escape(alt)}"></a><figcaption>{html.escape(alt)} (<a '
-            f'href="{html.escape(target.removesuffix(".png"))}.pdf">PDF</a>)</figcaption></figure>'
+            f'<figure><a href="{html.escape(target)}"><img src="{image}" '
+            f'alt="{html.escape(alt)}"></a><figcaption>{html.escape(alt)}{pdf}</figcaption></figure>'
         )
     return out
 
