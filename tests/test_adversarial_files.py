@@ -618,3 +618,14 @@ def test_the_dry_run_says_what_the_sweep_would_refuse(tmp_path, capsys):
     main([*argv, "--dry-run"])
     err = capsys.readouterr().err
     assert "the sweep would refuse to start" in err and "trained with another spec" in err
+
+
+def test_a_junk_file_in_the_cache_is_made_again(tmp_path, monkeypatch, capsys):
+    """``eabc data make`` of a dataset whose cached file is junk makes it again (it used to call
+    the junk cached and current, so that every later load refused it)."""
+    monkeypatch.setenv("EABC_CACHE_DIR", str(tmp_path))
+    path = tmp_path / "datasets" / "hopper-random.hdf5"
+    path.parent.mkdir()
+    path.write_bytes(b"junk")
+    main(["data", "make", "hopper-random", "--size", "2000"])
+    assert load_file(path).size > 0

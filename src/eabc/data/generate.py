@@ -94,13 +94,13 @@ def is_current(path: str | os.PathLike, name: str, zoo_root=None) -> bool:
     if not path.is_file():  # missing, or a directory or FIFO in its place: made again
         return False
     env_name, kind = tasks.parse_task(name)
-    if kind == "random":
-        return True
     try:
         with h5py.File(path, "r") as f:
             metadata = json.loads(f.attrs.get("metadata", "{}"))
     except (OSError, ValueError, TypeError):  # unreadable (junk, truncated): made again
         return False
+    if kind == "random":
+        return True
     if metadata.get("version") != FORMAT_VERSION:
         return False
     try:
