@@ -31,8 +31,8 @@ process on both cores (``benchmarks/speed.py``, docs/speed.md)."""
 DATASET_SECONDS_PER_1M = {"mujoco": (35.0, 75.0), "antmaze": (140.0, 215.0)}
 """Seconds to make 1M transitions at the reference host's speed, one process: the MuJoCo recipes
 (halfcheetah fastest, hopper slowest) and AntMaze (10 environments at once), as
-``python benchmarks/datasets.py`` states them from any host (here: 20K-100K transitions of each
-medium dataset and 10K-50K of antmaze-umaze on a loaded 2-core Intel Xeon, probe 22-47 GFLOP/s;
+``python benchmarks/datasets.py`` states them from any host (from 20K-100K transitions of each
+medium dataset and 10K-50K of antmaze-umaze on a loaded host, scaled by its probe; where and how:
 docs/speed.md)."""
 
 EPISODE_SECONDS = 0.15
