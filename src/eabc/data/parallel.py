@@ -163,8 +163,8 @@ def _joined(spec: Rollout, pieces: list) -> dict[str, np.ndarray] | None:
     done = [(piece.result(), expected) for piece, expected in pieces]
     for result, expected in done:
         if expected is not None and result["end"] != expected:
-            _say(f"{spec.desc}: the episode starts known for it do not fit at row "
-                         f"{expected['row']:,}; one process makes it")  # fmt: skip
+            row = expected["row"]
+            _say(f"{spec.desc}: its episode starts do not fit at row {row:,}; one process makes it")
             return None
     return {k: np.concatenate([r["rows"][k] for r, _ in done]) for k in done[0][0]["rows"]}
 
