@@ -1,5 +1,6 @@
-"""``write_report``: every table and figure of a sweep into one folder, and a ``report.md`` (and
-``report.html``) that shows them all.
+"""``write_report``: every table and figure of a sweep into one folder, and a ``report.md`` that
+shows them all: PNG figures and Markdown tables, and on request (``formats``) PDF and SVG
+figures, HTML and LaTeX tables and ``report.html``.
 
 The tables come from :mod:`eabc.experiments.tables`, Figures 1-5 and the performance profiles from
 :mod:`eabc.experiments.figures`; this module adds what the cells rest on (evaluations per score,
