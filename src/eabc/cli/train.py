@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import sys
 from pathlib import Path
@@ -17,7 +18,7 @@ from eabc.cli.options import (
     TrainOptions,
     parse_settings,
 )
-from eabc.ranges import Positive, PositiveNumber, Seed
+from eabc.ranges import NonNegative, Positive, PositiveNumber, Seed
 
 
 @dataclasses.dataclass(frozen=True)
@@ -47,6 +48,10 @@ class Train:
     dry_run: bool = False
     """Check every option, the dataset and the algorithm's settings, print the plan (dataset,
     settings, schedule, estimated time) and stop: nothing is made, trained or written."""
+    eval_workers: NonNegative = 0
+    """Evaluate in this many processes while training goes on (0: in the training process,
+    between chunks). The same scores and files either way; worth it where evaluation is a large
+    part of the time (on a GPU), not on a CPU whose cores train."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -158,7 +163,8 @@ def run_train(cmd: Train) -> dict:
             print(f"{run_dir} is finished ({run.step} steps): nothing to train", file=sys.stderr)
         return run
 
-    summary = _start_or_resume_then_train(cmd, resume, start, trainer.train, "train")
+    train = functools.partial(trainer.train, eval_workers=cmd.eval_workers)
+    summary = _start_or_resume_then_train(cmd, resume, start, train, "train")
     if summary.get("diverged_step") is not None:
         raise RuntimeError(f"training stopped at step {summary['diverged_step']} on NaN/inf")
     return summary
@@ -243,12 +249,22 @@ def train_plan(cmd: Train) -> dict[str, str]:
         + ", ".join(f"{k}={_short(v)}" for k, v in settings.items()),
         "evaluation": f"{env_id or 'the environment the data name (--env to set one)'}: "
         f"{config.eval_episodes} episodes every {config.eval_interval:,} steps "
-        f"({config.steps // config.eval_interval} evaluations), seed {config.seed} + 100",
+        f"({_evaluations(config)}), seed {config.seed} + 100",
         "schedule": f"{config.steps:,} steps of batch {config.batch_size}, a log row every "
         f"{config.log_interval:,}, a checkpoint every {config.checkpoint_interval:,}",
         "estimate": f"about {timing.duration(seconds)} of training, "
         f"{timing.duration(per_million)} per 1M gradient steps, {speed.basis()}",
     }
+
+
+def _evaluations(config) -> str:
+    """``200 evaluations``, or with the thin schedule ``29 evaluations: every 50,000 steps, every
+    5,000 in the last 50,000``."""
+    count = f"{len(config.evaluation_steps())} evaluations"
+    if config.eval_schedule == "every":
+        return count
+    window = 10 * config.eval_interval
+    return f"{count}: every {window:,} steps, every {config.eval_interval:,} in the last {window:,}"
 
 
 def _task_env(dataset_name: str) -> str | None:

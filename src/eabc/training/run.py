@@ -63,6 +63,10 @@ class TrainConfig:
     """Evaluate every this many gradient steps."""
     eval_episodes: ranges.Positive = 10
     """Episodes per evaluation."""
+    eval_schedule: Literal["every", "thin"] = "every"
+    """every: evaluate every eval_interval steps; thin: every 10 x eval_interval steps, and every
+    eval_interval in the last 10 x eval_interval (the final score's 10 evaluations as with every;
+    at 1M steps, 5K apart: 29 evaluations rather than 200)."""
     log_interval: ranges.Steps = 1000
     """Steps per compiled chunk: log rows and progress updates come this often."""
     checkpoint_interval: ranges.Steps = 5000
@@ -81,6 +85,11 @@ class TrainConfig:
             raise ValueError(
                 f"algo: unknown algorithm {self.algo!r}; choose one of {', '.join(ALGORITHMS)}"
             )
+        schedules = typing.get_args(typing.get_type_hints(TrainConfig)["eval_schedule"])
+        if self.eval_schedule not in schedules:
+            raise ValueError(
+                f"eval_schedule must be one of {', '.join(schedules)}, got {self.eval_schedule!r}"
+            )
         if self.batch_size is None:  # set here, so config.json records the size trained with
             object.__setattr__(self, "batch_size", get_algorithm(self.algo).batch_size)
         hints = typing.get_type_hints(TrainConfig, include_extras=True)
@@ -97,6 +106,24 @@ class TrainConfig:
                 )
         if self.cache_dir is not None:  # checked now, not after minutes of making a dataset
             check_cache_dir(self.cache_dir, "cache_dir")
+
+    def evaluates(self, step: int) -> bool:
+        """Whether the run evaluates after ``step`` steps (always after its last): see
+        ``eval_schedule``."""
+        if step == self.steps:
+            return True
+        if step % self.eval_interval:
+            return False
+        window = FINAL_EVALUATIONS * self.eval_interval  # the final score's evaluations
+        return self.eval_schedule == "every" or step % window == 0 or step > self.steps - window
+
+    def evaluation_steps(self, after: int = 0) -> list[int]:
+        """The steps after ``after`` at which the run evaluates."""
+        first = after - after % self.eval_interval + self.eval_interval
+        steps = range(first, self.steps + 1, self.eval_interval)
+        return [s for s in steps if self.evaluates(s)] + (
+            [self.steps] if self.steps % self.eval_interval and self.steps > after else []
+        )
         if self.reward_convention is None:  # set here, so config.json records what was used
             object.__setattr__(self, "reward_convention", rewards.default(self.algo))
         rewards.check(self.reward_convention)

@@ -21,7 +21,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from eabc.evaluation import Policy
-from eabc.training import checkpoint, provenance
+from eabc.training import checkpoint, eval_pool, provenance
 from eabc.training.chunks import device_data, summarize_metrics, train_chunk, train_chunk_seeds
 from eabc.training.health import (
     divergence_warning,
@@ -52,37 +52,70 @@ def policy_fn(run: Run) -> Policy:
 
 
 def evaluate(run: Run) -> dict[str, float]:
-    return run.evaluator(policy_fn(run))
+    """The run's current policy evaluated as its evaluation at this step is (the step picks
+    AntMaze's goals: :meth:`~eabc.evaluation.Evaluator.seed_at`)."""
+    return run.evaluator(policy_fn(run), step=run.step)
 
 
-def train(run: Run, progress: bool = True) -> dict[str, Any]:
+def evaluation_task(run: Run) -> eval_pool.Task:
+    """The evaluation of ``run`` at its current step, for an evaluation process."""
+    evaluator = run.evaluator
+    return eval_pool.Task(
+        evaluator.env_id, evaluator.seed, evaluator.episodes, evaluator.ref_min_score,
+        evaluator.ref_max_score, run.step, jax.device_get(run.state["agent"].actor),
+        np.asarray(run.normalizer.mean), np.asarray(run.normalizer.std), run.max_action,
+        run.algorithm.gaussian_actor,
+    )  # fmt: skip
+
+
+def train(
+    run: Run, progress: bool = True, eval_workers: int | eval_pool.EvaluationPool = 0
+) -> dict[str, Any]:
     """Train ``run`` to ``config.steps`` from wherever it is; returns the summary."""
-    return train_seeds([run], progress)[0]
+    return train_seeds([run], progress, eval_workers)[0]
 
 
-def train_seeds(runs: list[Run], progress: bool = True) -> list[dict[str, Any]]:
+def train_seeds(
+    runs: list[Run], progress: bool = True, eval_workers: int | eval_pool.EvaluationPool = 0
+) -> list[dict[str, Any]]:
     """Train runs that differ only in their seed together, vectorised over the seeds.
 
     One compiled chunk advances every seed (``vmap`` of the scanned update); then every run logs,
     evaluates and checkpoints into its own directory exactly as if trained alone, so each can be
     resumed or reported on its own. Runs that are not at the same step are trained one by one.
     Each run's writer lock is released when this returns or fails.
+
+    ``eval_workers`` > 0 evaluates in that many processes while training goes on
+    (:mod:`eabc.training.eval_pool`), or in a given pool (one pool for many calls); the files
+    written are the same as with 0, which evaluates in this process between chunks.
     """
+    own = None
+    if isinstance(eval_workers, eval_pool.EvaluationPool):
+        pool = eval_workers
+    else:
+        pool = own = eval_pool.EvaluationPool(eval_workers) if eval_workers else None
+    finished = False
     try:
         for run in runs:  # who trains it from here, where, with what code (provenance.json)
             provenance.record(run.run_dir, run.step)
-        return _train_seeds(runs, progress)
+        summaries = _train_seeds(runs, progress, pool)
+        finished = True
+        return summaries
     finally:
+        if own is not None:
+            own.close(finished)
         for run in runs:
             if run.lock is not None:
                 run.lock.release()
 
 
-def _train_seeds(runs: list[Run], progress: bool) -> list[dict[str, Any]]:
+def _train_seeds(
+    runs: list[Run], progress: bool, pool: eval_pool.EvaluationPool | None = None
+) -> list[dict[str, Any]]:
     first = runs[0]
     _check_same_setting(runs)
     if len({run.step for run in runs}) > 1:
-        return [_train_seeds([run], progress)[0] for run in runs]
+        return [_train_seeds([run], progress, pool)[0] for run in runs]
     config = first.config
     dataset = first.dataset
     dataset = prepared(first.algorithm, dataset, config.reward_convention)
@@ -92,6 +125,11 @@ def _train_seeds(runs: list[Run], progress: bool) -> list[dict[str, Any]]:
         first.algorithm.update, config=first.agent_config, max_action=first.max_action
     )
     loggers = [RunLogger(run.run_dir, resume_step=run.step) for run in runs]
+    writers = [
+        functools.partial(_write, run, logger, q_range) for run, logger in zip(runs, loggers)
+    ]
+    # With a pool, each run's rows and checkpoints wait for the evaluations before them.
+    queues = [eval_pool.InOrder(write) for write in writers] if pool is not None else None
     seeds = ",".join(str(run.config.seed) for run in runs)
     bar = tqdm(
         total=config.steps,
@@ -131,21 +169,31 @@ def _train_seeds(runs: list[Run], progress: bool) -> list[dict[str, Any]]:
                 ]
             jax.block_until_ready(outputs)
             seconds = time.perf_counter() - started
-            rows = [
-                _after_chunk(run, *output, length, seconds, logger, q_range)
-                for run, output, logger in zip(runs, outputs, loggers)
-            ]
-            for run, row, logger in zip(runs, rows, loggers):
-                # Warn at the first flagged row only; the log is scanned only when a row is flagged.
-                if row.get("q_out_of_range") and first_divergence(logger.rows, q_range) == run.step:
-                    tqdm.write(
-                        divergence_warning(run.run_dir.name, run.step, row["q_mean"], q_range),
-                        file=sys.stderr,
-                    )
+            rows = []
+            for i, (run, output) in enumerate(zip(runs, outputs)):
+                rows.append(_after_chunk(run, *output, length, seconds, q_range))
+                evaluation = state = None
+                if run.diverged_step is None and run.config.evaluates(run.step):
+                    if pool is None:
+                        evaluation = evaluate(run)
+                    else:
+                        evaluation = pool.submit(evaluation_task(run))
+                if run.diverged_step is None and _checkpoints(run):
+                    state = run.state
+                if queues is None:
+                    writers[i](rows[-1], evaluation, state)
+                else:
+                    queues[i].add(rows[-1], evaluation, state)
+            if queues is not None:  # at most two evaluations a worker out at a time
+                keep = max(1, 2 * pool.workers // len(runs))
+                for queue in queues:
+                    queue.flush(keep)
             bar.update(length)
             bar.set_postfix(_postfix(rows[0], first.state["evaluations"]), refresh=False)
             if any(run.diverged_step is not None for run in runs):
                 break
+        for queue in queues or []:
+            queue.flush(keep=0)
     finally:
         bar.close()
         for logger in loggers:
@@ -153,7 +201,7 @@ def _train_seeds(runs: list[Run], progress: bool) -> list[dict[str, Any]]:
     healthy = [run for run in runs if run.diverged_step is None]
     rest = {}  # the other seeds of a group, when one of them stopped on NaN/inf
     if len(healthy) < len(runs) and healthy and healthy[0].step < config.steps:
-        rest = dict(zip(map(id, healthy), _train_seeds(healthy, progress)))
+        rest = dict(zip(map(id, healthy), _train_seeds(healthy, progress, pool)))
     summaries = []
     for run, logger in zip(runs, loggers):
         if id(run) in rest:
@@ -183,11 +231,9 @@ def _check_same_setting(runs: list[Run]) -> None:
             )
 
 
-def _after_chunk(
-    run: Run, agent, key, metrics, length: int, seconds: float, logger, q_range=None
-) -> dict:
-    """Log, evaluate and checkpoint one run after a chunk of ``length`` steps."""
-    config = run.config
+def _after_chunk(run: Run, agent, key, metrics, length: int, seconds: float, q_range=None) -> dict:
+    """One run's state and log row after a chunk of ``length`` steps (its evaluation and
+    checkpoint come after, :func:`_write`)."""
     run.state = {**run.state, "agent": agent, "key": key}
     run.state["elapsed"] += seconds
     row = {"step": run.step, "wall_time": run.state["elapsed"], "steps_per_s": length / seconds}
@@ -197,23 +243,38 @@ def _after_chunk(
     bad = non_finite(row)
     if bad:  # the weights are NaN/inf from here on: no evaluation, no checkpoint, stop
         run.diverged_step = run.step
-        logger.log(row)
         tqdm.write(
             f"error: {run.run_dir.name} at step {run.step}: {', '.join(bad)} became NaN/inf, so "
             "training stops here; summary.json records diverged_step and the last checkpoint is "
             "from before (lower learning rates or more behaviour cloning may avoid it)",
             file=sys.stderr,
         )
-        return row
-    if run.step % config.eval_interval == 0 or run.step == config.steps:
-        result = evaluate(run)
-        run.state["evaluations"][str(run.step)] = result
-        row |= result
+    return row
+
+
+def _checkpoints(run: Run) -> bool:
+    """Whether the run saves a checkpoint at its current step."""
+    return run.step % run.config.checkpoint_interval == 0 or run.step == run.config.steps
+
+
+def _write(run: Run, logger, q_range, row: dict, evaluation: dict | None, state: dict | None):
+    """Log ``row`` with its step's ``evaluation`` (recorded in the run's history), then save
+    ``state`` (the run's state at the row's step) with the history up to that step; warn at the
+    run's first row whose Q values leave ``q_range``."""
+    if evaluation is not None:
+        run.state["evaluations"][str(row["step"])] = evaluation
+        row |= evaluation
         _plot(run)
     logger.log(row)
-    if run.step % config.checkpoint_interval == 0 or run.step == config.steps:
-        checkpoint.save(run.run_dir, run.state, run.algorithm.state_layout, run.identity)
-    return row
+    # Warn at the first flagged row only; the log is scanned only when a row is flagged.
+    if row.get("q_out_of_range") and first_divergence(logger.rows, q_range) == row["step"]:
+        tqdm.write(
+            divergence_warning(run.run_dir.name, row["step"], row["q_mean"], q_range),
+            file=sys.stderr,
+        )
+    if state is not None:
+        state = {**state, "evaluations": run.state["evaluations"]}
+        checkpoint.save(run.run_dir, state, run.algorithm.state_layout, run.identity)
 
 
 def _postfix(row, evaluations) -> dict[str, str]:
