@@ -33,14 +33,13 @@ import json
 import multiprocessing
 import os
 import sys
-import time
 import warnings
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
-from tqdm.auto import tqdm
 
+from eabc import progress
 from eabc.data import antmaze_collect, zoo
 
 TABLE = Path(__file__).with_name("episode_starts.json")
@@ -147,7 +146,7 @@ def _plan(spec: Rollout) -> list[tuple[tuple, dict | None]] | None:
     :func:`_rollout_piece` and where it must end (the next piece's start; None for the last)."""
     starts = table_starts(spec)
     if not starts:
-        _say(f"{spec.desc}: no episode starts of {spec.key()} known; one process makes it")
+        progress.say(f"{spec.desc}: no episode starts of {spec.key()} known; one process makes it")
         return None
     states = list(_start_states(spec, starts))
     plan = []
@@ -164,7 +163,9 @@ def _joined(spec: Rollout, pieces: list) -> dict[str, np.ndarray] | None:
     for result, expected in done:
         if expected is not None and result["end"] != expected:
             row = expected["row"]
-            _say(f"{spec.desc}: its episode starts do not fit at row {row:,}; one process makes it")
+            progress.say(
+                f"{spec.desc}: its episode starts do not fit at row {row:,}; one process makes it"
+            )
             return None
     return {k: np.concatenate([r["rows"][k] for r, _ in done]) for k in done[0][0]["rows"]}
 
@@ -262,17 +263,14 @@ def _antmaze_piece(maze_name, family, episodes, seed, policy, num_envs, recipe_n
 
 class Pool:
     """``workers`` spawned single-threaded processes making ``rows`` rows in ``pieces`` pieces,
-    with progress: a bar on a terminal, else a line when the work starts, at every tenth of the
-    rows and at the end. A context manager; leaving it on an error or an interrupt cancels the
-    pieces not started."""
+    with progress: a bar on a terminal, else lines (:func:`eabc.progress.bar`). A context
+    manager; leaving it on an error, Ctrl-C or a kill stops the workers."""
 
     def __init__(self, workers: int, desc: str, rows: int, pieces: int):
         context = multiprocessing.get_context("spawn")
         self.executor = concurrent.futures.ProcessPoolExecutor(workers, mp_context=context)
-        self.desc, self.rows, self.done, self.tenths = desc, rows, 0, 0
-        self.start = time.monotonic()
-        _say(f"{desc}: {rows:,} transitions in {pieces} pieces on {workers} processes")
-        self.bar = tqdm(total=rows, desc=desc, unit="step", leave=False, disable=None)
+        shared = f"in {pieces} pieces on {workers} processes"
+        self.bar = progress.bar(rows, desc, estimate=shared, mininterval=1.0, leave=False)
 
     def submit(self, work: Callable, *args) -> concurrent.futures.Future:
         """``work(*args)`` in a worker: the future of its result (a dict of rows, or Collected)."""
@@ -282,18 +280,10 @@ class Pool:
         return future
 
     def _progress(self, future: concurrent.futures.Future) -> None:
-        if future.cancelled() or future.exception() is not None:
-            return
-        result = future.result()
-        rows = len(result["rows"]["actions"] if isinstance(result, dict) else result.actions)
-        self.done += rows
-        self.bar.update(rows)
-        if self.bar.disable and self.done * 10 // self.rows > self.tenths:
-            self.tenths = self.done * 10 // self.rows
-            _say(f"{self.desc}: {self.done:,} of {self.rows:,} ({self._took()})")
-
-    def _took(self) -> str:
-        return f"{time.monotonic() - self.start:.0f} s"
+        if not future.cancelled() and future.exception() is None:
+            result = future.result()
+            actions = result["rows"]["actions"] if isinstance(result, dict) else result.actions
+            self.bar.update(len(actions))
 
     def __enter__(self) -> Pool:
         return self
@@ -304,8 +294,6 @@ class Pool:
                 process.terminate()  # the executor has no public way to stop running work
         self.executor.shutdown(wait=kind is None, cancel_futures=kind is not None)
         self.bar.close()
-        if kind is None:
-            _say(f"{self.desc}: made in {self._took()}")
 
 
 @contextlib.contextmanager
@@ -329,8 +317,3 @@ def _bare_children():
                 os.environ.pop(name, None)
             else:
                 os.environ[name] = value
-
-
-def _say(line: str) -> None:
-    """A stage line on stderr, on a terminal or not."""
-    print(f"eabc: {line}", file=sys.stderr, flush=True)
