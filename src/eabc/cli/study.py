@@ -47,8 +47,8 @@ class Study:
     """Earlier results (a study's --out, a report's directory): runs they hold as done are not
     trained again."""
     data_workers: Positive | None = None
-    """Processes that make the queue's missing datasets meanwhile (default: the CPU cores less
-    one, at least one)."""
+    """Processes that make each of the queue's missing datasets, one dataset after another while
+    the groups before it train (default: the CPU cores less one, at least one)."""
     steps: Positive | None = None
     """Gradient steps per run (default the spec's)."""
     smoke: bool = False

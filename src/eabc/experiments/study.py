@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import concurrent.futures
 import json
-import multiprocessing
 import os
 import time
 from collections.abc import Callable
@@ -92,17 +91,19 @@ def export(root: Path, out: Path) -> int:
     return len(ids)
 
 
-def _make_dataset(name: str, cache_dir: str | None, size: int | None) -> str:
+def _make_dataset(name: str, cache_dir: str | None, size: int | None, workers: int) -> str:
     path = generate.dataset_path(name, cache_dir)
-    generate.make(name, path, size=size)
+    generate.make(name, path, size=size, workers=workers)
     return str(path)
 
 
 def start_datasets(
     job_list: list[list[RunSpec]], workers: int, size: int | None, log
 ) -> tuple[dict[str, concurrent.futures.Future], concurrent.futures.Executor | None]:
-    """Make the missing built-in datasets of ``job_list`` in ``workers`` processes, in queue
-    order; returns a future per dataset (done at once for those already made) and the pool."""
+    """Make the missing built-in datasets of ``job_list`` one after another in queue order, each
+    by ``workers`` processes (the same bytes for any number, :func:`eabc.data.generate.make`), in
+    a background thread while the groups before them train; returns a future per dataset (done
+    at once for those already made) and the thread's executor."""
     futures: dict[str, concurrent.futures.Future] = {}
     pool = None
     for job in job_list:
@@ -115,11 +116,10 @@ def start_datasets(
             futures[name] = concurrent.futures.Future()
             futures[name].set_result(str(path))
             continue
-        if pool is None:  # spawned: the children start without this process's JAX runtime
-            context = multiprocessing.get_context("spawn")
-            pool = concurrent.futures.ProcessPoolExecutor(workers, mp_context=context)
-        log(f"making {name} into {path} (in the background)")
-        futures[name] = pool.submit(_make_dataset, name, config.cache_dir, size)
+        if pool is None:
+            pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="datasets")
+        log(f"making {name} into {path} in the background ({workers} processes)")
+        futures[name] = pool.submit(_make_dataset, name, config.cache_dir, size, workers)
     return futures, pool
 
 
@@ -178,7 +178,7 @@ def run_study(
             report["exported"] = export(root, out)
             log(f"done in {seconds:.0f} s: {label}; {report['exported']} runs in {out}")
     finally:
-        if pool is not None:
+        if pool is not None:  # the queue's later datasets are not begun; one being made ends
             pool.shutdown(wait=False, cancel_futures=True)
     report["exported"] = export(root, out)
     log(
