@@ -137,6 +137,10 @@ def test_local_sweep_is_interrupted_resumed_and_stored(tmp_path, two_datasets):
 
     main(_cli(two_datasets, root)[3:])  # the sweep again, from this process (its workers are not)
     assert [sweep.status(r, root)[0] for r in runs] == ["done"] * len(runs)
+    for run in runs:  # each job's log says what it trains, how long that takes, when it ended
+        log = (root / "logs" / f"{run.run_id}.log").read_text()
+        assert f"eabc: training {run.algo} " in log and "/400 steps in " in log, log
+        assert "\r" not in log  # lines, not a progress bar
     table, evaluations = results.collect(root)
     assert len(table) == 4 and set(table["status"]) == {"done"}
     for run in interrupted:  # resumed, not restarted: one log row per step

@@ -260,10 +260,12 @@ def execute(job: list[dict], root: str) -> list[dict]:
         checkpoint.save_json(
             run_dir / SPEC, {"run_id": spec.run_id, "variant": spec.variant, **identity}
         )
+    # Progress as lines in the job's log (ROOT/logs/NAME.log): its start with the estimate, one
+    # a minute, its end.
     summaries = (
-        trainer.train_seeds(runs, progress=False)
+        trainer.train_seeds(runs, progress=True)
         if len(runs) > 1
-        else [trainer.train(runs[0], progress=False)]
+        else [trainer.train(runs[0], progress=True)]
     )
     return summaries
 
