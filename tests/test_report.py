@@ -613,3 +613,14 @@ def test_curve_titles_say_over_how_many_seeds(results, tmp_path, monkeypatch):
         f"Learning curves: mean ± 1 std over 1-{len(SEEDS)} seeds (one seed: no band)",
         "Ablation of num_critics (EABC)\nmean ± 1 std over 2 seeds",
     ]
+
+
+def test_writing_a_report_says_its_stages(results, tmp_path, capfd, quick_figures):
+    """Before: a report of many runs wrote its tables and figures in silence."""
+    runs, evaluations = results
+    report.write_report(runs, evaluations, tmp_path / "report")
+    err = capfd.readouterr().err
+    assert f"eabc: report: {len(runs)} runs into {tmp_path / 'report'}: tables\n" in err
+    assert "eabc: report: figures (learning curves, ablations, runtime)\n" in err
+    assert re.search(r"eabc: report: done in [\d.]+ (s|minutes)\n", err)
+    assert err.index(": tables") < err.index(": figures") < err.index(": done in")
