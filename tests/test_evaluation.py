@@ -144,3 +144,20 @@ def test_the_thin_schedule_keeps_the_final_window_and_thins_the_rest():
     assert thin.evaluation_steps(after=950_000) == list(range(955_000, 1_000_001, 5000))
     with pytest.raises(ValueError, match="eval_schedule"):
         TrainConfig(eval_schedule="sparse")
+
+
+def test_a_sweep_estimates_the_evaluations_its_schedule_makes():
+    from eabc import timing
+    from eabc.experiments import sweep
+    from eabc.experiments.spec import RunSpec
+
+    def seconds(schedule, done=0):
+        train = (("eval_schedule", schedule), ("steps", 1_000_000))
+        return sweep.estimate_seconds(RunSpec("hopper-medium", "td3bc", 0, (), train), done)
+
+    episode = timing.EPISODE_SECONDS / timing.REFERENCE.factor
+    assert seconds("every") - seconds("thin") == pytest.approx((200 - 29) * 10 * episode)
+    # Half-way, 9 sparse evaluations and the final window's 10 are left.
+    assert seconds("every", 500_000) - seconds("thin", 500_000) == pytest.approx(
+        (100 - 19) * 10 * episode
+    )

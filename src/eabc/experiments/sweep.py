@@ -147,7 +147,7 @@ def estimate_seconds(
     config = dataclasses.replace(algorithm.preset, **dict(run.overrides))
     train = run.train_config()
     left = max(train.steps - steps_done, 0)
-    evaluations = left // train.eval_interval * train.eval_episodes
+    evaluations = len(train.evaluation_steps(after=steps_done)) * train.eval_episodes
     return trainer.estimate_seconds(
         algorithm, config, left, evaluations, steps_done == 0, steps_per_s, speed
     )
