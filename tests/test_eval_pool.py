@@ -120,3 +120,20 @@ def test_a_task_carries_the_run_s_policy(tmp_path, pendulum_dataset):
     assert all(np.array_equal(task.actor[k], actor[k]) for k in actor)
     assert eval_pool.evaluate(task) == trainer.evaluate(run)
     run.lock.release()
+
+
+def test_a_critic_out_of_range_is_reported_once_when_its_row_is_written(
+    tmp_path, pendulum_dataset, pool, capsys
+):
+    """The warning comes with the row (held back until its evaluation is in), once."""
+    import dataclasses
+
+    silent = dataclasses.replace(pendulum_dataset, rewards=np.zeros_like(pendulum_dataset.rewards))
+    here = start(tmp_path, "here", silent, steps=200)
+    expected = results(here.run_dir, trainer.train(here, progress=False))
+    assert capsys.readouterr().err.count("the critics are diverging") == 1
+    there = start(tmp_path, "there", silent, steps=200)
+    summary = trainer.train(there, progress=False, eval_workers=pool)
+    assert capsys.readouterr().err.count("the critics are diverging") == 1
+    assert summary["q_out_of_range_step"] == 100
+    assert results(there.run_dir, summary) == expected
