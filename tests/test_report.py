@@ -405,7 +405,7 @@ def test_a_runs_speed_is_the_median_of_its_training_chunks(tmp_path):
     run = tmp_path / "run"
     run.mkdir()
     train = {"dataset": "hopper-medium", "algo": "td3bc", "seed": 0, "steps": 4000}
-    (run / "config.json").write_text(json.dumps({"train": train}))
+    (run / "config.json").write_text(json.dumps({"train": train, "agent": {}, "dataset": {}}))
     rates = [4.0, 290.0, 300.0, 3.0, 280.0]  # two compiling chunks (start, resume)
     rows = [f"{1000 * (i + 1)},{1000 / r:.6f},{r}" for i, r in enumerate(rates)]
     (run / "log.csv").write_text("step,wall_time,steps_per_s\n" + "\n".join(rows) + "\n")

@@ -173,7 +173,7 @@ def test_a_run_keeps_the_ensembles_state_from_just_before_its_critics_ran_away(t
         run = tmp_path / name
         run.mkdir()
         train = {"dataset": "hopper-medium", "algo": "eabc", "seed": 0, "steps": 4000}
-        (run / "config.json").write_text(json.dumps({"train": train}))
+        (run / "config.json").write_text(json.dumps({"train": train, "agent": {}, "dataset": {}}))
         (run / "log.csv").write_text("\n".join([header, *lines]) + "\n")
         rows[name], _ = results.read_run(run)
     away = rows["ran-away"]

@@ -27,7 +27,7 @@ def _fake_run_dir(root, run: RunSpec, speeds: list[float]):
     run_dir = root / sweep.RUNS / run.run_id
     run_dir.mkdir(parents=True)
     train = {"algo": run.algo, "seed": run.seed, "steps": 20000, "dataset": run.dataset}
-    (run_dir / "config.json").write_text(json.dumps({"train": train, "agent": {}}))
+    (run_dir / "config.json").write_text(json.dumps({"train": train, "agent": {}, "dataset": {}}))
     (run_dir / sweep.SPEC).write_text(json.dumps({"run_id": run.run_id, **run.to_json()}))
     rows = ["step,steps_per_s,q_mean"] + [f"{1000 * (i + 1)},{v},1.0" for i, v in enumerate(speeds)]
     (run_dir / "log.csv").write_text("\n".join(rows) + "\n")
@@ -226,7 +226,7 @@ def test_a_run_another_root_has_done_or_is_training_is_left_to_it(
     run_dir = other / sweep.RUNS / done.run_id
     run_dir.mkdir(parents=True)
     train = {"algo": "td3bc", "seed": 0, "steps": 300, "dataset": str(data)}
-    (run_dir / "config.json").write_text(json.dumps({"train": train, "agent": {}}))
+    (run_dir / "config.json").write_text(json.dumps({"train": train, "agent": {}, "dataset": {}}))
     (run_dir / sweep.SPEC).write_text(json.dumps({"run_id": done.run_id, **done.to_json()}))
     (run_dir / "log.csv").write_text("step,q_mean,return_mean,score\n300,1.0,-500.0,42.0\n")
     (run_dir / "summary.json").write_text(json.dumps({"steps": 300}))
