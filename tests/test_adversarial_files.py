@@ -629,3 +629,33 @@ def test_a_junk_file_in_the_cache_is_made_again(tmp_path, monkeypatch, capsys):
     path.write_bytes(b"junk")
     main(["data", "make", "hopper-random", "--size", "2000"])
     assert load_file(path).size > 0
+
+
+def test_a_job_that_cannot_start_fails_alone(tmp_path, monkeypatch):
+    """Whatever stops one job from starting (its log file cannot be made, the process cannot be
+    spawned), the sweep's other jobs start and finish; the sweep then reports the one failure.
+    Before, the exception left the pool and terminated the healthy running jobs."""
+    from eabc.experiments import sweep  # noqa: PLC0415
+    from eabc.experiments.spec import expand  # noqa: PLC0415
+
+    runs = expand({"datasets": ["hopper-random"], "algos": ["td3bc"], "seeds": [0, 1]})
+    started = []
+
+    class Finished:  # a worker that has already finished, successfully
+        returncode = 0
+
+        def __init__(self, cmd, **kwargs):
+            (job,) = json.loads(cmd[-1])
+            if job["seed"] == runs[0].seed:
+                raise OSError(36, "File name too long")
+            started.append(job["seed"])
+
+        def poll(self):
+            return 0
+
+    monkeypatch.setattr(sweep.subprocess, "Popen", Finished)
+    lines = []
+    with pytest.raises(RuntimeError, match=f"1 job\\(s\\) failed: {runs[0].run_id}"):
+        sweep.run_local([[runs[0]], [runs[1]]], tmp_path, workers=1, log=lines.append)
+    assert started == [runs[1].seed]
+    assert any(line.startswith(f"finished {runs[1].run_id}") for line in lines), lines
