@@ -1,4 +1,4 @@
-"""A probe of bad inputs, faults and misuses: some 700 cases in six classes, each judged good or bad.
+"""A probe of bad inputs, faults and misuses: some 750 cases in seven classes, each judged good or bad.
 
     nice python benchmarks/probe.py                  # every case, 5-7 minutes on 2 busy cores
     nice python benchmarks/probe.py --classes 1 3    # only those classes
@@ -10,7 +10,8 @@ run; 2 a run's files deleted, cut short or edited (results must not be lost or r
 3 malformed input (dataset files, config.json, checkpoints, FIFOs, sweep specs) that could end in
 a traceback or a hang; 4 inputs that could be found bad only after work (reference scores, cache
 and run directories, environments, sweeps, reports); 5 numbers, settings and sweep specs of the
-wrong shape; 6 reports and results of runs without reference scores.
+wrong shape; 6 reports and results of runs without reference scores; 7 Ctrl-C while train, sac or
+sweep works (exit code 130, one line that says how to go on, no temporary file left).
 
 The probe first trains a few tiny runs (TD3+BC and BC, 32-unit networks, 200 steps on 40
 transitions; about a minute) into a scratch folder. Each case then gets a fresh directory with
@@ -32,6 +33,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import hashlib
+import math
 import os
 import resource
 import shutil
@@ -58,6 +60,7 @@ CLASSES = {
     4: "checked too late",
     5: "numbers and specs",
     6: "no reference scores",
+    7: "interrupted",
 }
 
 
@@ -82,7 +85,8 @@ class Case:
     argv: list[str]
     """The command's arguments, relative to the case's directory."""
     expect: str
-    """``refuse`` (bad input), ``work`` (good input) or ``either`` (a refusal or a correct result)."""
+    """``refuse`` (bad input), ``work`` (good input), ``either`` (a refusal or a correct result)
+    or ``interrupted`` (Ctrl-C, see ``interrupt``)."""
     prepare: Callable[[Path], None] = lambda folder: None
     """Makes the case's files in its (empty) directory."""
     names: tuple[str, ...] = ()
@@ -94,6 +98,9 @@ class Case:
     timeout: float = 60.0
     env: dict[str, str] = dataclasses.field(default_factory=dict)
     """Environment variables for the command (paths relative to the case's directory)."""
+    interrupt: str | None = None
+    """Ctrl-C (SIGINT) to the command 1 s after this path of the case's directory appears (a
+    run's log.csv: it trains); ``expect`` is then ``interrupted``: exit code 130 and one line."""
 
 
 def snapshot(folder: Path) -> dict[str, str]:
@@ -119,7 +126,9 @@ def changes(before: dict[str, str], after: dict[str, str]) -> str:
     return "; ".join(parts)
 
 
-def run_forked(argv: list[str], folder: Path, env: dict[str, str], timeout: float) -> Outcome:
+def run_forked(
+    argv: list[str], folder: Path, env: dict[str, str], timeout: float, interrupt=None
+) -> Outcome:
     """``eabc ARGV`` in ``folder``, in a child forked from this process (which has imported eabc
     and started no thread, so the fork is safe); killed after ``timeout`` seconds."""
     from eabc import cli  # noqa: PLC0415
@@ -155,11 +164,16 @@ def run_forked(argv: list[str], folder: Path, env: dict[str, str], timeout: floa
             sys.stderr.flush()
         finally:
             os._exit(code)
-    timed_out = False
+    timed_out, seen = False, None
     while True:
         done, status = os.waitpid(pid, os.WNOHANG)
         if done:
             break
+        if interrupt is not None and seen is None and (folder / interrupt).exists():
+            seen = time.perf_counter()
+        if seen is not None and time.perf_counter() - seen > 1.0:
+            os.kill(pid, signal.SIGINT)  # once: a second Ctrl-C is another case
+            seen, interrupt = -math.inf, None
         if time.perf_counter() - start > timeout:
             os.kill(pid, signal.SIGKILL)
             _, status = os.waitpid(pid, 0)
@@ -173,11 +187,30 @@ def run_forked(argv: list[str], folder: Path, env: dict[str, str], timeout: floa
     return Outcome(os.waitstatus_to_exitcode(status), out, err, seconds, timed_out)
 
 
-def run_subprocess(argv: list[str], folder: Path, env: dict[str, str], timeout: float) -> Outcome:
+def run_subprocess(
+    argv: list[str], folder: Path, env: dict[str, str], timeout: float, interrupt=None
+) -> Outcome:
     """``python -m eabc.cli ARGV`` in ``folder``."""
     environment = {**os.environ, **{k: str(folder / v) if v.startswith(".") else v
                                     for k, v in env.items()}}  # fmt: skip
     start = time.perf_counter()
+    if interrupt is not None:
+        proc = subprocess.Popen([sys.executable, "-m", "eabc.cli", *argv], cwd=folder,
+                                env=environment, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                text=True, preexec_fn=_limit_memory)  # fmt: skip
+        while proc.poll() is None and not (folder / interrupt).exists():
+            if time.perf_counter() - start > timeout:
+                break
+            time.sleep(0.02)
+        time.sleep(1.0)
+        proc.send_signal(signal.SIGINT)
+        try:
+            out, err = proc.communicate(timeout=max(timeout - (time.perf_counter() - start), 1))
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            out, err = proc.communicate()
+            return Outcome(-9, out, err, timeout, True)
+        return Outcome(proc.returncode, out, err, time.perf_counter() - start)
     try:
         done = subprocess.run([sys.executable, "-m", "eabc.cli", *argv], cwd=folder,
                               env=environment, capture_output=True, text=True, timeout=timeout,
@@ -199,6 +232,13 @@ def verdict(case: Case, outcome: Outcome, before: dict, after: dict, folder: Pat
     lines = [line for line in outcome.err.splitlines() if line.strip()]
     if any(line.startswith("Traceback (most recent call last)") for line in lines):
         return f"a traceback: {lines[-1][:200]}"
+    if case.expect == "interrupted":
+        last = lines[-1] if lines else ""
+        if outcome.code != 130 or "interrupted" not in last:
+            return f"Ctrl-C ended in exit {outcome.code}, not 130 with one line: {last[:200]!r}"
+        if case.names and not any(name in last for name in case.names):
+            return f"the interruption names none of {list(case.names)}: {last[:200]}"
+        return case.check(folder, outcome) if case.check is not None else None
     if outcome.code != 0:
         last = lines[-1] if lines else ""
         if case.expect == "work":
@@ -260,7 +300,7 @@ def main() -> int:
         folder.mkdir(parents=True)
         case.prepare(folder)
         before = snapshot(folder)
-        outcome = run(case.argv, folder, case.env, case.timeout)
+        outcome = run(case.argv, folder, case.env, case.timeout, case.interrupt)
         why = verdict(case, outcome, before, snapshot(folder), folder)
         totals[case.group][why is None] += 1
         if why is not None:

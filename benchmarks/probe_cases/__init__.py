@@ -7,6 +7,7 @@ from pathlib import Path
 
 from probe import Case
 
+from probe_cases.bounds import interrupted, numbers_and_flags, output_paths
 from probe_cases.common import make_base
 from probe_cases.late import too_late
 from probe_cases.malformed import malformed
@@ -21,4 +22,5 @@ __all__ = ["all_cases", "make_base"]
 def all_cases(base: Path) -> list[Case]:
     """Every case of the probe, class by class."""
     return [*foreign_files(base), *deleted_or_edited(base), *malformed(base), *too_late(base),
-            *wrong_shapes(base), *no_reference_scores(base), *tampered(base)]  # fmt: skip
+            *wrong_shapes(base), *no_reference_scores(base), *tampered(base),
+            *numbers_and_flags(base), *output_paths(base), *interrupted(base)]  # fmt: skip

@@ -210,6 +210,20 @@ def sweep_spec(cmd: Sweep) -> dict:
 
 
 def run_sweep(cmd: Sweep) -> None:
+    """``eabc sweep``; Ctrl-C before its first run started (making data, probing this host's
+    speed) ends in one line too."""
+    try:
+        _run_sweep(cmd)
+    except Interrupted:
+        raise
+    except KeyboardInterrupt:
+        raise Interrupted(
+            f"sweep interrupted before its runs started; run the same `eabc sweep` command "
+            f"again (root {cmd.root})"
+        ) from None
+
+
+def _run_sweep(cmd: Sweep) -> None:
     import yaml  # noqa: PLC0415
 
     from eabc.data import sources  # noqa: PLC0415
