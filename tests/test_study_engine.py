@@ -63,7 +63,7 @@ def test_a_group_starts_only_if_its_scaled_estimate_ends_before_the_deadline(tmp
     monkeypatch.setattr(sweep, "estimate_seconds", lambda run, done=0: estimates[run.dataset])
     trained = []
 
-    def execute(job, root):
+    def execute(job, root, eval_workers=0):
         trained.append(job[0]["dataset"])
         time.sleep(0.2)
 
@@ -79,7 +79,7 @@ def test_a_group_starts_only_if_its_scaled_estimate_ends_before_the_deadline(tmp
 
 
 def test_a_failed_group_is_named_and_the_queue_goes_on(tmp_path, monkeypatch):
-    def execute(job, root):
+    def execute(job, root, eval_workers=0):
         if job[0]["dataset"] == "walker2d-medium":
             raise ValueError("no memory for it")
 

@@ -49,6 +49,9 @@ class Study:
     data_workers: Positive | None = None
     """Processes that make each of the queue's missing datasets, one dataset after another while
     the groups before it train (default: the CPU cores less one, at least one)."""
+    eval_workers: int | None = None
+    """Processes that evaluate the runs while training goes on, one pool for the whole queue
+    (default: the CPU cores less one; 0 evaluates in the training process between chunks)."""
     steps: Positive | None = None
     """Gradient steps per run (default the spec's)."""
     smoke: bool = False
@@ -87,6 +90,13 @@ def run_study(cmd: Study) -> None:
         runs = [r for r in runs if r.run_id not in done]
     deadline = None if cmd.within is None else time.time() + sweep.parse_duration(cmd.within)
     workers = cmd.data_workers or max(1, (os.cpu_count() or 2) - 1)
-    report = study.run_study(runs, paths.expand(cmd.root), out, deadline, workers, size)
+    if cmd.eval_workers is not None and cmd.eval_workers < 0:
+        raise ValueError(f"--eval-workers must be 0 or more, got {cmd.eval_workers}")
+    evaluators = cmd.eval_workers
+    if evaluators is None:
+        evaluators = max(1, (os.cpu_count() or 2) - 1)
+    report = study.run_study(
+        runs, paths.expand(cmd.root), out, deadline, workers, size, eval_workers=evaluators
+    )
     if report["failed"]:
         raise SystemExit(f"error: {len(report['failed'])} group(s) failed; see {out / 'study.log'}")

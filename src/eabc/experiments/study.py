@@ -29,6 +29,7 @@ from eabc import paths
 from eabc.data import generate
 from eabc.experiments import results, sweep
 from eabc.experiments.spec import RunSpec
+from eabc.training import eval_pool
 
 OUT_FILES = (
     "runs.csv",  # one row per finished run, as `eabc report` writes it (read back by --include)
@@ -138,8 +139,11 @@ def run_study(
     data_workers: int = 1,
     dataset_size: int | None = None,
     echo: Callable[[str], None] = print,
+    eval_workers: int = 0,
 ) -> dict[str, Any]:
-    """Train ``runs`` group by group in this process until the queue or the time is spent.
+    """Train ``runs`` group by group in this process until the queue or the time is spent;
+    ``eval_workers`` processes evaluate every group's runs while training goes on (one pool for
+    the whole queue; 0: in this process, between chunks).
 
     Returns what happened: ``finished`` (run ids), ``skipped`` (groups not started because
     their estimate ended past ``deadline``), ``failed`` (group label -> error) and ``exported``
@@ -150,6 +154,7 @@ def run_study(
     job_list = sweep.jobs(runs, root, "vmap")
     log(f"{len(runs)} runs in {len(job_list)} groups to train in {root}")
     futures, pool = start_datasets(job_list, data_workers, dataset_size, log)
+    evaluators = eval_pool.EvaluationPool(eval_workers) if eval_workers else 0
     took: dict[str, list[tuple[float, float]]] = {}  # algo -> (actual, estimated) seconds
     report: dict[str, Any] = {"finished": [], "skipped": [], "failed": {}, "exported": 0}
     try:
@@ -167,7 +172,7 @@ def run_study(
             log(f"training {label} (~{guess:.0f} s by the estimates so far)")
             started = time.time()
             try:
-                sweep.execute([sweep._absolute(r) for r in job], str(root))
+                sweep.execute([sweep._absolute(r) for r in job], str(root), evaluators)
             except Exception as error:  # one failed group does not stop the queue
                 log(f"failed: {label}: {error}")
                 report["failed"][label] = str(error)
@@ -180,6 +185,8 @@ def run_study(
     finally:
         if pool is not None:  # the queue's later datasets are not begun; one being made ends
             pool.shutdown(wait=False, cancel_futures=True)
+        if evaluators:
+            evaluators.close(finished=False)
     report["exported"] = export(root, out)
     log(
         f"finished {len(report['finished'])} runs, skipped {len(report['skipped'])} groups, "

@@ -236,8 +236,10 @@ def jobs(runs: list[RunSpec], root: Path, layout: str) -> list[list[RunSpec]]:
     return [[r] for r in todo]
 
 
-def execute(job: list[dict], root: str) -> list[dict]:
-    """Run one job in this process: start or resume each run, then train (seeds vmapped)."""
+def execute(job: list[dict], root: str, eval_workers: Any = 0) -> list[dict]:
+    """Run one job in this process: start or resume each run, then train (seeds vmapped);
+    ``eval_workers``: evaluation processes, or an evaluation pool shared with other jobs
+    (``eabc.training.eval_pool``; 0 evaluates in this process)."""
     from eabc.data.sources import load_dataset  # noqa: PLC0415
     from eabc.training import checkpoint, trainer  # noqa: PLC0415
 
@@ -263,9 +265,9 @@ def execute(job: list[dict], root: str) -> list[dict]:
     # Progress as lines in the job's log (ROOT/logs/NAME.log): its start with the estimate, one
     # a minute, its end.
     summaries = (
-        trainer.train_seeds(runs, progress=True)
+        trainer.train_seeds(runs, progress=True, eval_workers=eval_workers)
         if len(runs) > 1
-        else [trainer.train(runs[0], progress=True)]
+        else [trainer.train(runs[0], progress=True, eval_workers=eval_workers)]
     )
     return summaries
 
@@ -411,19 +413,10 @@ def run_local(
                     if not job:
                         continue
                 name = job[0].group_id if len(job) > 1 else job[0].run_id
+                out = open(logs / f"{name}.log", "ab")  # noqa: SIM115
                 payload = json.dumps([r.to_json() for r in job])
                 cmd = [sys.executable, "-m", "eabc.experiments.worker", str(root), payload]
-                out = None
-                try:  # a job that cannot start fails alone: the running ones go on
-                    out = open(logs / f"{name}.log", "ab")  # noqa: SIM115
-                    proc = subprocess.Popen(cmd, env=env, stdout=out, stderr=out)
-                except OSError as error:
-                    if out is not None:
-                        out.close()
-                    failures.append(name)
-                    log(f"FAILED {name}: it could not start ({error}); the other jobs go on")
-                    continue
-                active.append((proc, job, out))
+                active.append((subprocess.Popen(cmd, env=env, stdout=out, stderr=out), job, out))
                 log(
                     f"started {name} ({len(job)} run{'s' * (len(job) > 1)}; {ended} of {total} jobs done)"
                 )
