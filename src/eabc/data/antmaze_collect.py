@@ -33,12 +33,12 @@ import os
 from pathlib import Path
 
 import numpy as np
-from tqdm.auto import tqdm
 
 from eabc import numpy_networks
 from eabc.data import antmaze, mazes, zoo
 from eabc.data.dataset import Dataset, DatasetError
 from eabc.data.mazes import Cell, Maze
+from eabc.progress import bar as progress_bar
 
 ACTION_NOISE = 0.2
 """Standard deviation of the Gaussian noise on every action (D4RL's ``--noisy``)."""
@@ -249,10 +249,7 @@ def collect(
     act_out = np.empty((rows, envs[0].action_space.shape[0]), np.float32)
     goals = np.empty((stop - first, 2))
     success, flipped = np.zeros(stop - first, bool), np.zeros(stop - first, bool)
-    bar = tqdm(
-        total=rows, desc=desc, unit="step", mininterval=1.0, leave=False,
-        disable=None if progress else True,
-    )  # fmt: skip
+    bar = progress_bar(rows, desc, enabled=progress, mininterval=1.0, leave=False)
     for batch in range(first, stop, num_envs):
         # Always a full batch (the policy's batch size stays the same); extra episodes are dropped.
         ids = range(batch, batch + num_envs)

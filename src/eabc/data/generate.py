@@ -17,8 +17,8 @@ from pathlib import Path
 
 import h5py
 import numpy as np
-from tqdm.auto import tqdm
 
+from eabc import progress, timing
 from eabc.data import parallel, tasks
 from eabc.data.dataset import Dataset, DatasetError, concatenate
 from eabc.data.loaders import load_file
@@ -136,10 +136,15 @@ RECIPES = {
 }
 
 
-def making_time(name: str) -> str:
-    """About how long making the built-in dataset ``name`` takes on one core of a busy 2-core
-    machine (AntMaze: 110-125 s per 100K transitions measured, 10 environments at once)."""
-    return "15-25 minutes" if tasks.parse_task(name)[0] == "antmaze" else "1-8 minutes"
+def making_time(name: str, size: int | None = None, speed=None) -> str:
+    """About how long making ``size`` transitions (default the dataset's) of the built-in
+    dataset ``name`` takes, and on what speed that rests (:mod:`eabc.timing`; ``speed``: a
+    :class:`~eabc.timing.HostSpeed`, by default this host's, measured when it matters)."""
+    size = size or default_size(name)
+    if speed is None:
+        quick = timing.dataset_seconds(name, size)[1] < 10  # not worth a probe
+        speed = timing.host_speed(measure=not quick)
+    return f"{timing.making_time(name, size, speed)} {speed.basis()}"
 
 
 def default_size(name: str) -> int:
@@ -174,6 +179,10 @@ def make(
         )
     env_name, kind = task
     size = size or default_size(name)
+    progress.say(
+        f"making {name}: {size:,} transitions into {path}, "
+        f"{making_time(name, -(-size // max(workers, 1)))}"  # workers share the rows
+    )
     if env_name == "antmaze":
         return _make_antmaze(name, kind, path, seed, size, zoo_root, workers)
     env = tasks.ENVS[env_name]
@@ -448,9 +457,9 @@ def rollout(
     rng = np.random.default_rng(seed)
     out = parallel.empty_rows(env, num_transitions)
     obs, _ = env.reset(seed=seed)
-    bar = tqdm(
-        range(num_transitions), desc=desc, unit="step", mininterval=1.0, leave=False, disable=None
-    )  # disable=None: no bar when the output is not a terminal (logs, CI)
+    bar = progress.bar(
+        num_transitions, desc, iterable=range(num_transitions), mininterval=1.0, leave=False
+    )  # a bar on a terminal, else a line every minute (logs, CI)
     parallel.step_rows(env, act, rng, obs, out, bar, num_transitions)
     if not (out["terminals"][-1] or out["timeouts"][-1]):
         out["timeouts"][-1] = True

@@ -20,7 +20,9 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
+from eabc import timing
 from eabc.evaluation import Policy
+from eabc.progress import bar as progress_bar
 from eabc.training import checkpoint, eval_pool, provenance
 from eabc.training.chunks import device_data, summarize_metrics, train_chunk, train_chunk_seeds
 from eabc.training.health import (
@@ -43,6 +45,41 @@ from eabc.training.run import (  # noqa: F401 (the API: trainer.start, trainer.T
     resume,
     start,
 )
+
+
+def estimate_seconds(
+    algorithm,
+    agent_config,
+    steps_left: int,
+    evaluations: int,
+    pretrain: bool = False,
+    steps_per_s: float | None = None,
+    speed: timing.HostSpeed = timing.REFERENCE,
+) -> float:
+    """About how long ``steps_left`` gradient steps of ``algorithm`` at ``agent_config`` take,
+    with ``evaluations`` evaluation episodes and, with ``pretrain``, the one-off model fit: at
+    ``steps_per_s`` where it was measured on this host, else at the contract's reference-host
+    rate (``Algorithm.steps_per_s``, scaled by the settings' relative cost) times this host's
+    ``speed`` (:mod:`eabc.timing`)."""
+    reference_rate = algorithm.steps_per_s / max(algorithm.relative_cost(agent_config), 1e-9)
+    rate = steps_per_s or reference_rate * speed.factor
+    fit = algorithm.pretrain_s(agent_config) if algorithm.pretrain_s and pretrain else 0.0
+    return steps_left / rate + (evaluations * timing.EPISODE_SECONDS + fit) / speed.factor
+
+
+def _estimate(run: Run) -> str:
+    """``about 12 minutes at ...``: the time the rest of ``run`` takes; this host's speed is
+    probed only when the reference estimate is long enough to matter."""
+    config = run.config
+    left = max(config.steps - run.step, 0)
+    evaluations = (config.steps // config.eval_interval - run.step // config.eval_interval) * (
+        config.eval_episodes
+    )
+    args = (run.algorithm, run.agent_config, left, evaluations)
+    quick = estimate_seconds(*args) < 10
+    speed = timing.host_speed(config.cache_dir, measure=not quick)
+    seconds = estimate_seconds(*args, speed=speed)
+    return f"{'about ' * (seconds >= 1)}{timing.duration(seconds)} {speed.basis()}"
 
 
 def policy_fn(run: Run) -> Policy:
@@ -131,12 +168,13 @@ def _train_seeds(
     # With a pool, each run's rows and checkpoints wait for the evaluations before them.
     queues = [eval_pool.InOrder(write) for write in writers] if pool is not None else None
     seeds = ",".join(str(run.config.seed) for run in runs)
-    bar = tqdm(
-        total=config.steps,
+    desc = f"{config.algo} {first.dataset.name}" + (f" seeds {seeds}" if len(runs) > 1 else "")
+    bar = progress_bar(
+        config.steps,
+        f"training {desc}",
         initial=first.step,
-        unit="step",
-        disable=not progress,
-        desc=f"{config.algo} {first.dataset.name}" + (f" seeds {seeds}" if len(runs) > 1 else ""),
+        enabled=progress,
+        estimate=_estimate(first) if progress and first.step < config.steps else None,
         dynamic_ncols=True,
     )
     try:
