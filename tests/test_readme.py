@@ -113,7 +113,7 @@ def test_the_check_fails_on_a_broken_command():
 
 def test_readme_first_command_runs(tmp_path, monkeypatch):
     """README's first command, for real, on a small dataset of the same name and a tiny budget
-    (the flags appended last win)."""
+    (its length and intervals replaced)."""
     [(_, argv)] = eabc_commands((ROOT / "README.md").read_text())[:1]
     assert argv[0] == "train"
     monkeypatch.chdir(tmp_path)
@@ -121,9 +121,14 @@ def test_readme_first_command_runs(tmp_path, monkeypatch):
     monkeypatch.setenv("EABC_CACHE_DIR", str(cache))
     dataset = argv[argv.index("--dataset") + 1]
     generate.make(dataset, generate.dataset_path(dataset, cache), size=2_000)
-    budget = ["--steps", "20", "--log-interval", "10", "--eval-interval", "20"]
-    budget += ["--checkpoint-interval", "20", "--eval-episodes", "1", "--no-progress"]
-    cli.main([*argv, *budget])
+    budget = {"--steps": "20", "--log-interval": "10", "--eval-interval": "20",
+              "--checkpoint-interval": "20", "--eval-episodes": "1"}  # fmt: skip
+    for flag, value in budget.items():  # a flag is given once: the README's value replaced
+        if flag in argv:
+            argv[argv.index(flag) + 1] = value
+        else:
+            argv += [flag, value]
+    cli.main([*argv, "--no-progress"])
     [run_dir] = (tmp_path / "runs").iterdir()
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["steps"] == 20 and summary["final_score"] == summary["final_score"]  # not NaN
