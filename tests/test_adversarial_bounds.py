@@ -199,13 +199,12 @@ def test_a_setting_given_twice_is_refused(npz):
 
 
 @pytest.mark.parametrize(
-    ("values", "runs"),
-    [([2, 2.0], None), ([5, 5], 1), ([0.25, 0.250], 1), ([[32, 32], [32.0, 32]], None),
-     ([2, 3], 2), ([1, 1.0], None)],
+    ("key", "values", "runs"),
+    [("num_critics", [2, 2.0], None), ("num_critics", [5, 5], 1), ("num_critics", [2, 3], 2),
+     ("confidence_level", [0.25, 0.250], 1), ("confidence_level", [1, 1.0], None),
+     ("hidden_dims", [[32, 32], [32.0, 32]], None)],
 )  # fmt: skip
-def test_a_grid_value_written_two_ways_is_refused(values, runs):
-    key = "hidden_dims" if isinstance(values[0], list) else "num_critics"
-    key = "confidence_level" if values[0] in (0.25, 1) and values[0] != 2 else key
+def test_a_grid_value_written_two_ways_is_refused(key, values, runs):
     spec = {"datasets": ["hopper-medium"], "algos": ["eabc"], "grid": {key: values}}
     if runs is None:
         with pytest.raises(ValueError, match=rf"^grid\.{key} lists .* written two ways"):
@@ -228,7 +227,7 @@ def test_dry_run_judges_flags_as_the_run_does(tmp_path, npz, flags, monkeypatch)
     class Started(Exception):
         pass
 
-    def started(run, progress=True):
+    def started(run, progress=True, **kwargs):
         run.lock.release()
         raise Started
 
@@ -411,3 +410,142 @@ def test_ctrl_c_on_data_make_leaves_no_temporary_file(tmp_path):
     assert code == 130 and not any("Traceback" in line for line in lines), lines
     assert lines[-1].startswith("interrupted"), lines
     assert not [p for p in cache.rglob("*") if p.is_file() and p.suffix in (".tmp", ".hdf5")]
+
+
+# ----------------------------------------------------------------------------------------------
+# Generated: any mix of these inputs is refused in one line naming what is wrong, or accepted as is
+
+RESUME_IGNORES = {"--seed": "3", "--steps": "400", "--algo": "bc", "--dataset": "x.npz",
+                  "--batch-size": "64", "--eval-episodes": "2", "--run-dir": "elsewhere",
+                  "--set": "tau=0.5", "--num-critics": "5", "--env": "Pendulum-v1"}  # fmt: skip
+
+
+@settings(SETTINGS, max_examples=40)
+@given(
+    st.lists(st.sampled_from(sorted(RESUME_IGNORES)), min_size=1, max_size=4, unique=True),
+    st.sampled_from([[], ["--no-progress"], ["--dry-run"], ["--restart"]]),
+    st.booleans(),
+)
+def test_resume_refuses_every_option_it_would_ignore(flags, own, equals):
+    argv = ["train", "--resume", "RUN", *own]
+    for flag in flags:
+        argv += [f"{flag}={RESUME_IGNORES[flag]}"] if equals else [flag, RESUME_IGNORES[flag]]
+    with pytest.raises(ValueError) as error:
+        cli.parse(argv)
+    message = str(error.value)
+    assert "\n" not in message and all(flag in message for flag in flags), message
+
+
+@settings(SETTINGS, max_examples=60)
+@given(
+    st.lists(
+        st.tuples(st.sampled_from(["tau", "actor_lr", "discount", "policy_noise"]),
+                  st.sampled_from(["0.005", "0.1", "5e-4", "0.5"])),
+        min_size=1, max_size=4,
+    ),
+    st.booleans(),
+)  # fmt: skip
+def test_a_setting_is_taken_once_or_refused_naming_it(items, one_flag):
+    """``--set a=1 a=2`` or ``--set a=1 --set a=2``: refused; each key once: the values as given."""
+    texts = [f"{k}={v}" for k, v in items]
+    argv = ["train", "--algo", "td3bc", *(["--set", *texts] if one_flag else
+                                          [t for text in texts for t in ("--set", text)])]  # fmt: skip
+    keys = [k for k, _ in items]
+    try:
+        cmd = cli.parse(argv)
+    except ValueError as error:
+        message = str(error)
+        assert "\n" not in message and "--set" in message, message
+        twice = len(set(keys)) < len(keys) or (not one_flag and len(items) > 1)
+        assert twice or "must be" in message, message  # a repeat, or a value out of range
+        event("refused")
+        return
+    event("accepted")
+    assert len(set(keys)) == len(keys) and (one_flag or len(items) == 1)
+    assert cmd.set == tuple(texts)
+
+
+@settings(SETTINGS, max_examples=60)
+@given(st.lists(st.sampled_from([2, 2.0, 3, 3.0, "3", 4]), min_size=1, max_size=4))
+def test_a_grid_runs_each_setting_once(values):
+    """A grid axis: one run per distinct setting, or refused where a setting is written two ways."""
+    spec = {"datasets": ["hopper-medium"], "algos": ["eabc"], "grid": {"num_critics": values}}
+    spellings: dict[int, set[str]] = {}
+    for value in values:
+        spellings.setdefault(int(value), set()).add(str(value))
+    try:
+        runs = expand(spec)
+    except ValueError as error:
+        assert str(error).startswith("grid.num_critics lists"), error
+        assert any(len(texts) > 1 for texts in spellings.values())
+        event("refused")
+        return
+    event("expanded")
+    assert len(runs) == len(spellings) and all(len(t) == 1 for t in spellings.values())
+
+
+OUTPUTS = ["checkpoint.msgpack", "config.json", "log.csv", "summary.json", "new.onnx",
+           "folder", "fifo", "link-config", "link-new", "/dev/null", "outside.onnx"]  # fmt: skip
+
+
+@settings(SETTINGS, max_examples=30)
+@given(st.sampled_from(OUTPUTS), st.booleans())
+def test_export_writes_only_a_new_or_its_own_file(run_dir, where, inside):
+    """Any output path: written where it is a new file or one the export wrote, else refused
+    with the run directory and the device untouched."""
+    import tempfile  # noqa: PLC0415
+
+    pytest.importorskip("onnx")
+    before = {p.name: p.read_bytes() for p in run_dir.iterdir() if p.is_file()}
+    with tempfile.TemporaryDirectory() as scratch:
+        folder = run_dir if inside and where.endswith(".onnx") else Path(scratch)
+        target = {"folder": Path(scratch), "/dev/null": Path("/dev/null")}.get(where)
+        if where in ("checkpoint.msgpack", "config.json", "log.csv", "summary.json"):
+            target = run_dir / where
+        elif where == "fifo":
+            target = Path(scratch) / "p.onnx"
+            os.mkfifo(target)
+        elif where.startswith("link"):
+            target = Path(scratch) / "l.onnx"
+            target.symlink_to(run_dir / "config.json" if where.endswith("config") else
+                              Path(scratch) / "nowhere.onnx")  # fmt: skip
+        elif target is None:
+            target = folder / where
+        writable = where in ("new.onnx", "outside.onnx", "link-new")
+        try:
+            with contextlib.redirect_stdout(io.StringIO()):
+                main(["export-policy", str(run_dir), "--onnx", str(target)])
+            event("written")
+            assert writable, target
+        except SystemExit as exit_:
+            message = str(exit_.code)
+            assert message.startswith("error: --onnx") and "\n" not in message, message
+            assert not writable or where == "link-new", message
+            event("refused")
+        finally:
+            for name in ("new.onnx", "outside.onnx"):
+                (run_dir / name).unlink(missing_ok=True)
+    assert {p.name: p.read_bytes() for p in run_dir.iterdir() if p.is_file()} == before
+    assert Path("/dev/null").is_char_device()
+
+
+@settings(SETTINGS, max_examples=20)
+@given(st.sampled_from([["train", "--dry-run"], ["results", "."], ["data", "list"],
+                        ["sweep", "--preset", "table1", "--dry-run"], ["report", "."]]))  # fmt: skip
+def test_ctrl_c_anywhere_in_a_command_is_one_line_and_exit_130(argv):
+    """Ctrl-C where the command's work begins: exit code 130 and one line, never a traceback."""
+    err = io.StringIO()
+    command = type(cli.parse(argv))
+    real = cli.HANDLERS[command]
+
+    def interrupted(cmd):
+        raise KeyboardInterrupt
+
+    cli.HANDLERS[command] = interrupted
+    try:
+        with pytest.raises(SystemExit) as exit_, contextlib.redirect_stderr(err):
+            main(argv)
+    finally:
+        cli.HANDLERS[command] = real
+    assert exit_.value.code == 130
+    assert err.getvalue().strip() == "interrupted", err.getvalue()
