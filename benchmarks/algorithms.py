@@ -40,7 +40,7 @@ def agent(algo: str, steps_total: int = 1_000_000):
     config = algorithm.resolved(algorithm.preset, "hopper-medium", steps_total, set())
     state = algorithm.init(jax.random.PRNGKey(0), OBS_DIM, ACT_DIM, config)
     update = functools.partial(algorithm.update, config=config, max_action=1.0)
-    return state, update
+    return state, update, algorithm.delayed_period(config) if algorithm.delayed_period else None
 
 
 def measure(algo: str, steps: int, repeats: int, seeds: int = 1) -> list[float]:
@@ -56,7 +56,7 @@ def measure(algo: str, steps: int, repeats: int, seeds: int = 1) -> list[float]:
     if algorithm.next_actions:  # random next actions: speed does not depend on values
         data = BatchWithNextActions(**vars(data), next_actions=data.actions[::-1])
     batch_size = algorithm.batch_size
-    state, update = agent(algo)
+    state, update, period = agent(algo)
     key = jax.random.PRNGKey(1)
     if seeds > 1:
         state = jax.tree.map(lambda x: jax.numpy.stack([x] * seeds), state)
@@ -64,12 +64,16 @@ def measure(algo: str, steps: int, repeats: int, seeds: int = 1) -> list[float]:
         chunk = train_chunk_seeds
     else:
         chunk = train_chunk
-    state, key, _ = chunk(state, key, data, update, batch_size, steps)  # compile and warm up
+    # period, start: the TD3 family's actor on its fixed schedule, as the trainer runs it
+    state, key, _ = chunk(
+        state, key, data, update, batch_size, steps, period, 0
+    )  # compile, warm up
     jax.block_until_ready(state)
     rates = []
-    for _ in range(repeats):
+    for i in range(repeats):
         start = time.perf_counter()
-        state, key, metrics = chunk(state, key, data, update, batch_size, steps)
+        done = (i + 1) * steps
+        state, key, metrics = chunk(state, key, data, update, batch_size, steps, period, done)
         jax.block_until_ready((state, metrics))
         rates.append(seeds * steps / (time.perf_counter() - start))
     return rates

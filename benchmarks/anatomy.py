@@ -153,7 +153,12 @@ def main() -> None:
     update = functools.partial(eabc.update, config=config, max_action=1.0)
     key = jax.random.PRNGKey(1)
     chunk = functools.partial(
-        train_chunk, data=data, update=update, batch_size=256, length=args.steps
+        train_chunk,
+        data=data,
+        update=update,
+        batch_size=256,
+        length=args.steps,
+        period=config.policy_freq,
     )
     compiled = jax.jit(chunk).lower(state, key).compile()
     computations, owner = parse_hlo(compiled.as_text())

@@ -59,12 +59,16 @@ def steps_per_s(k: int, seeds: int, steps: int, repeats: int, size: int) -> floa
     states = jax.vmap(lambda key: eabc.init(key, OBS_DIM, ACT_DIM, config))(keys)
     update = functools.partial(eabc.update, config=config, max_action=1.0)
     loop_keys = jax.random.split(jax.random.PRNGKey(1), seeds)
-    states, loop_keys, _ = train_chunk_seeds(states, loop_keys, data, update, 256, steps)
+    states, loop_keys, _ = train_chunk_seeds(
+        states, loop_keys, data, update, 256, steps, config.policy_freq, int(states.step[0])
+    )
     jax.block_until_ready(states)  # compiled and warm
     rates = []
     for _ in range(repeats):
         start = time.perf_counter()
-        states, loop_keys, metrics = train_chunk_seeds(states, loop_keys, data, update, 256, steps)
+        states, loop_keys, metrics = train_chunk_seeds(
+            states, loop_keys, data, update, 256, steps, config.policy_freq, int(states.step[0])
+        )
         jax.block_until_ready((states, metrics))
         rates.append(steps / (time.perf_counter() - start))
     del jnp

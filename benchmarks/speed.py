@@ -88,6 +88,12 @@ def chunk_setup(env: str, k: int, layer_norm: bool = False):
     return state, update, fake_data(obs_dim, act_dim)
 
 
+def schedule(update, state) -> tuple[int, int]:
+    """The chunk's ``period`` and ``start`` as the trainer passes them: EABC's actor steps on a
+    fixed schedule (every policy_freq-th step; :mod:`eabc.agents.td3_core`), no branch."""
+    return update.keywords["config"].policy_freq, int(state.step)
+
+
 def measure(env: str, k: int, steps: int, repeats: int) -> list[float]:
     """steps/s of the real training chunk (sampling from a device-resident dataset included)."""
     import jax
@@ -96,12 +102,14 @@ def measure(env: str, k: int, steps: int, repeats: int) -> list[float]:
 
     state, update, data = chunk_setup(env, k)
     key = jax.random.PRNGKey(1)
-    state, key, _ = train_chunk(state, key, data, update, 256, steps)  # compile and warm up
+    state, key, _ = train_chunk(
+        state, key, data, update, 256, steps, *schedule(update, state)
+    )  # compile and warm up
     jax.block_until_ready(state)
     rates = []
     for _ in range(repeats):
         start = time.perf_counter()
-        state, key, m = train_chunk(state, key, data, update, 256, steps)
+        state, key, m = train_chunk(state, key, data, update, 256, steps, *schedule(update, state))
         jax.block_until_ready((state, m))
         rates.append(steps / (time.perf_counter() - start))
     return rates
@@ -117,7 +125,9 @@ def measure_layer_norm(env: str, k: int, steps: int, rounds: int) -> dict[str, l
     runs = {}
     for name, layer_norm in (("plain", False), ("ln", True)):
         state, update, data = chunk_setup(env, k, layer_norm)
-        state, key, _ = train_chunk(state, jax.random.PRNGKey(1), data, update, 256, steps)
+        state, key, _ = train_chunk(
+            state, jax.random.PRNGKey(1), data, update, 256, steps, *schedule(update, state)
+        )
         jax.block_until_ready(state)  # compiled and warm
         runs[name] = [state, key, data, update]
     times: dict[str, list[float]] = {f"{n}_{c}": [] for n in runs for c in ("wall", "cpu")}
@@ -125,7 +135,9 @@ def measure_layer_norm(env: str, k: int, steps: int, rounds: int) -> dict[str, l
         for name in ("plain", "ln") if round_ % 2 == 0 else ("ln", "plain"):
             state, key, data, update = runs[name]
             wall, cpu = time.perf_counter(), time.process_time()
-            state, key, metrics = train_chunk(state, key, data, update, 256, steps)
+            state, key, metrics = train_chunk(
+                state, key, data, update, 256, steps, *schedule(update, state)
+            )
             jax.block_until_ready((state, metrics))
             times[f"{name}_wall"].append(time.perf_counter() - wall)
             times[f"{name}_cpu"].append(time.process_time() - cpu)

@@ -76,6 +76,11 @@ class Algorithm:
     next_actions: bool = False
     """Its batches carry the data's action at s' (:class:`~eabc.agents.common.BatchWithNextActions`,
     e.g. ReBRAC's critic penalty); others get a plain :class:`~eabc.agents.common.Batch`."""
+    delayed_period: Callable[[Any], int] | None = None
+    """``delayed_period(config)``, for an update with a delayed part that runs on the steps ``t``
+    with ``t % period == 0`` (the TD3 family's actor and targets: :mod:`eabc.agents.td3_core`).
+    Its ``update`` then takes ``delayed`` (a Python bool, whether this step runs that part), and
+    the training chunks pass it: a fixed schedule, so that their compiled program has no branch."""
     step_metrics: frozenset[str] = CRITIC_METRICS
     """Metrics averaged over every step of a chunk (see :data:`CRITIC_METRICS`)."""
     steps_per_s: float = 60.0

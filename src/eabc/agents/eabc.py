@@ -10,6 +10,9 @@ One call of :func:`update` is one gradient step ``t`` on a mini-batch ``(s, a, r
    ``lambda = alpha / mean|P|`` (no gradient) and ``w ~ Bernoulli(p)`` per sample;
 5. then the actor and critic targets move by Polyak averaging.
 
+Steps 1, 3 and 5 and the schedule of step 4 are TD3's (:mod:`eabc.agents.td3_core`); this file
+holds the target, the losses and the BC weight.
+
 docs/algorithm.md#the-update is the specification this file follows line by line; with every
 setting at its default the rule is exactly that (published EABC). The settings below it are the
 variants the study screened (docs/results/screen/README.md), each a switch of this one rule:
@@ -34,16 +37,14 @@ here, the longer BC-weight rules it can switch to in :mod:`eabc.agents.bc_weight
 from __future__ import annotations
 
 import dataclasses
-import functools
 from typing import Literal
 
 import jax
 import jax.numpy as jnp
-import optax
 
 from eabc import networks, pytree
-from eabc.agents import bc_weights
-from eabc.agents.common import Batch, apply_gradients
+from eabc.agents import bc_weights, td3_core
+from eabc.agents.common import Batch
 from eabc.agents.contract import Algorithm
 from eabc.data import tasks
 
@@ -221,44 +222,17 @@ reports set beside it."""
 
 
 @pytree.dataclass
-class EABCState:
-    actor: networks.Params
-    critic: networks.Params
-    actor_target: networks.Params
-    critic_target: networks.Params
-    actor_opt: optax.OptState
-    critic_opt: optax.OptState
-    step: jax.Array
-    """Gradient steps taken so far."""
+class EABCState(td3_core.TD3State):
+    """TD3's networks, optimisers and step count (:class:`~eabc.agents.td3_core.TD3State`)."""
+
     controller: dict[str, jax.Array] = pytree.field(default_factory=dict)
     """bc_weight auto's state: ``p`` and the reward range seen so far (empty otherwise)."""
 
 
-def _optimizers(config: EABCConfig) -> tuple[optax.GradientTransformation, ...]:
-    return optax.adam(config.actor_lr), optax.adam(config.critic_lr)
-
-
 def init(key: jax.Array, obs_dim: int, act_dim: int, config: EABCConfig) -> EABCState:
-    actor_key, critic_key = jax.random.split(key)
-    actor = networks.init_mlp(actor_key, (obs_dim, *config.hidden_dims, act_dim))
-    critic = networks.init_mlp(
-        critic_key,
-        (obs_dim + act_dim, *config.hidden_dims, 1),
-        num_members=config.num_critics,
-        layer_norm=config.critic_layer_norm,
-    )
-    actor_tx, critic_tx = _optimizers(config)
+    base = td3_core.init(key, obs_dim, act_dim, config)
     controller = bc_weights.initial_controller(config) if config.bc_weight == "auto" else {}
-    return EABCState(
-        actor=actor,
-        critic=critic,
-        actor_target=actor,
-        critic_target=critic,
-        actor_opt=actor_tx.init(actor),
-        critic_opt=critic_tx.init(critic),
-        step=jnp.zeros((), jnp.int32),
-        controller=controller,
-    )
+    return EABCState(**vars(base), controller=controller)
 
 
 def pessimistic_value(
@@ -276,10 +250,7 @@ def pessimistic_value(
 
 def critic_loss(critic, critic_target, actor_target, batch: Batch, key, config, max_action):
     noise_key, pess_key = jax.random.split(key)
-    noise = jax.random.normal(noise_key, batch.actions.shape) * config.policy_noise * max_action
-    noise = jnp.clip(noise, -config.noise_clip * max_action, config.noise_clip * max_action)
-    next_action = networks.actor_apply(actor_target, batch.next_observations, max_action)
-    next_action = jnp.clip(next_action + noise, -max_action, max_action)
+    next_action = td3_core.target_action(actor_target, batch, noise_key, config, max_action)
     target_q = networks.critic_apply(critic_target, batch.next_observations, next_action)
     if config.independent_targets:  # [K, B]: member i bootstraps from its own target network
         next_value = target_q
@@ -356,88 +327,45 @@ def advantage_keep(critic, batch: Batch, policy_value, key, config: EABCConfig) 
     return jax.lax.stop_gradient(better.astype(policy_value.dtype))
 
 
-def critic_step(state, batch: Batch, key, config: EABCConfig, max_action: float):
-    """One Adam step of the critic ensemble: ``(critic, critic_opt, metrics)``."""
-    _, critic_tx = _optimizers(config)
-    grads, metrics = jax.grad(critic_loss, has_aux=True)(
-        state.critic, state.critic_target, state.actor_target, batch, key, config, max_action
-    )
-    critic, critic_opt = apply_gradients(critic_tx, grads, state.critic_opt, state.critic)
-    return critic, critic_opt, metrics
-
-
-def delayed_actor_step(
-    state, critic, step, batch: Batch, key, config, max_action, keep=None, p=None
-):
-    """Every ``policy_freq`` steps: an actor step (``keep``: a per-sample BC mask, or a function
-    that makes one, called on actor steps only), then Polyak averaging of both targets.
-
-    Returns ``(actor, actor_opt, actor_target, critic_target), metrics`` (zeros when skipped).
-    """
-    actor_tx, _ = _optimizers(config)
-
-    def actor_step(_):
-        mask = keep() if callable(keep) else keep  # a callable is evaluated on actor steps only
-        grads, metrics = jax.grad(actor_loss, has_aux=True)(
-            state.actor, critic, batch, key, config, max_action, mask, p
-        )
-        actor, actor_opt = apply_gradients(actor_tx, grads, state.actor_opt, state.actor)
-        targets = (
-            networks.polyak(state.actor_target, actor, config.tau),
-            networks.polyak(state.critic_target, critic, config.tau),
-        )
-        return (actor, actor_opt, *targets), metrics
-
-    def skip(_):
-        shapes = jax.eval_shape(actor_step, None)[1]
-        zeros = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
-        return (state.actor, state.actor_opt, state.actor_target, state.critic_target), zeros
-
-    return jax.lax.cond(step % config.policy_freq == 0, actor_step, skip, None)
-
-
 def update(
-    state: EABCState, batch: Batch, key: jax.Array, config: EABCConfig, max_action: float
+    state: EABCState,
+    batch: Batch,
+    key: jax.Array,
+    config: EABCConfig,
+    max_action: float,
+    delayed: bool | None = None,
 ) -> tuple[EABCState, dict[str, jax.Array]]:
-    """One gradient step of Algorithm 1. Pure: the same inputs always give the same outputs."""
+    """One gradient step ``t`` of Algorithm 1; ``delayed``: whether ``t % policy_freq == 0`` (the
+    actor's step), None: from ``state.step`` (see :func:`eabc.agents.td3_core.scheduled`). Pure:
+    the same inputs always give the same outputs."""
+    return td3_core.scheduled(_step, state, batch, key, config, max_action, delayed)
+
+
+def _step(state: EABCState, batch: Batch, key, config: EABCConfig, max_action, delayed: bool):
     critic_key, actor_key = jax.random.split(key)
-    # The quantile rule reads the critics before this step's update (the authors' order).
-    keep = None
-    if config.bc_weight == "quantile":  # evaluated inside the actor step, not on every step
-        keep = functools.partial(bc_weights.quantile_keep, state.critic, batch, config)
+    # Lines 1-3: the smoothed target action, the pessimistic target, the critics' step.
+    new, metrics = td3_core.critic_step(state, critic_loss, batch, critic_key, config, max_action)
+    if not delayed:
+        return new, metrics
+    # Lines 4-5: the actor's step on the critics just updated, then Polyak averaging. The
+    # quantile rule reads the critics from before this step's update (the authors' order).
+    keep = (
+        bc_weights.quantile_keep(state.critic, batch, config)
+        if config.bc_weight == "quantile"
+        else None
+    )
     p = state.controller["p"] if config.bc_weight == "auto" else None
-    critic, critic_opt, critic_metrics = critic_step(state, batch, critic_key, config, max_action)
-    step = state.step + 1
-    (actor, actor_opt, actor_target, critic_target), actor_metrics = delayed_actor_step(
-        state, critic, step, batch, actor_key, config, max_action, keep, p
+    new, actor_metrics = td3_core.actor_step(
+        new, config, actor_loss, batch, actor_key, config, max_action, keep, p
     )
-    controller, controller_metrics = state.controller, {}
-    if config.bc_weight == "auto":
-        adapted, controller_metrics = bc_weights.adapt_confidence_level(
-            state.controller, batch, {**critic_metrics, **actor_metrics}, config, step
+    metrics = {**metrics, **actor_metrics}
+    if config.bc_weight == "auto":  # p moves after each actor step
+        controller, controller_metrics = bc_weights.adapt_confidence_level(
+            state.controller, batch, metrics, config, new.step
         )
-        updated = step % config.policy_freq == 0
-        controller = jax.tree.map(
-            lambda new, old: jnp.where(updated, new, old), adapted, state.controller
-        )
-        controller_metrics["auto_p"] = controller["p"]
-    new_state = EABCState(
-        actor=actor,
-        critic=critic,
-        actor_target=actor_target,
-        critic_target=critic_target,
-        actor_opt=actor_opt,
-        critic_opt=critic_opt,
-        step=step,
-        controller=controller,
-    )
-    metrics = {
-        **critic_metrics,
-        **actor_metrics,
-        **controller_metrics,
-        "actor_updated": step % config.policy_freq == 0,
-    }
-    return new_state, metrics
+        new = new.replace(controller=controller)
+        metrics = {**metrics, **controller_metrics}
+    return new, metrics
 
 
 def resolve(config: EABCConfig, dataset_name: str, steps: int, given: frozenset[str]):
@@ -472,6 +400,7 @@ def _ensemble_cost(reference: int):
 
 _FAMILY = {
     "resolve": resolve,
+    "delayed_period": td3_core.delayed_period,
     "report_settings": ("num_critics", "confidence_level", "pessimism"),
     "cli_flags": ("confidence_level", "num_critics", "pessimism", "alpha"),
 }

@@ -40,10 +40,10 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
-import optax
 
-from eabc import networks, pytree
-from eabc.agents.common import BatchWithNextActions, apply_gradients
+from eabc import networks
+from eabc.agents import td3_core
+from eabc.agents.common import BatchWithNextActions
 from eabc.agents.contract import CRITIC_METRICS, Algorithm
 from eabc.data import tasks
 
@@ -116,41 +116,12 @@ BC_WEIGHTS: dict[tuple[str, str], tuple[float, float]] = {
 }
 
 
-@pytree.dataclass
-class ReBRACState:
-    actor: networks.Params
-    critic: networks.Params
-    actor_target: networks.Params
-    critic_target: networks.Params
-    actor_opt: optax.OptState
-    critic_opt: optax.OptState
-    step: jax.Array
-    """Gradient steps taken so far."""
-
-
-def _optimizers(config: ReBRACConfig) -> tuple[optax.GradientTransformation, ...]:
-    return optax.adam(config.actor_lr), optax.adam(config.critic_lr)
+ReBRACState = td3_core.TD3State
+"""TD3's networks, optimisers and step count: ReBRAC adds no state of its own."""
 
 
 def init(key: jax.Array, obs_dim: int, act_dim: int, config: ReBRACConfig) -> ReBRACState:
-    actor_key, critic_key = jax.random.split(key)
-    actor = networks.init_mlp(actor_key, (obs_dim, *config.hidden_dims, act_dim))
-    critic = networks.init_mlp(
-        critic_key,
-        (obs_dim + act_dim, *config.hidden_dims, 1),
-        num_members=config.num_critics,
-        layer_norm=config.critic_layer_norm,
-    )
-    actor_tx, critic_tx = _optimizers(config)
-    return ReBRACState(
-        actor=actor,
-        critic=critic,
-        actor_target=actor,
-        critic_target=critic,
-        actor_opt=actor_tx.init(actor),
-        critic_opt=critic_tx.init(critic),
-        step=jnp.zeros((), jnp.int32),
-    )
+    return td3_core.init(key, obs_dim, act_dim, config)
 
 
 def _weights(config: ReBRACConfig) -> tuple[float, float]:
@@ -165,10 +136,7 @@ def _weights(config: ReBRACConfig) -> tuple[float, float]:
 def critic_loss(critic, critic_target, actor_target, batch: BatchWithNextActions, key, config,
                 max_action):  # fmt: skip
     _, critic_bc_weight = _weights(config)
-    noise = jax.random.normal(key, batch.actions.shape) * config.policy_noise * max_action
-    noise = jnp.clip(noise, -config.noise_clip * max_action, config.noise_clip * max_action)
-    next_action = networks.actor_apply(actor_target, batch.next_observations, max_action)
-    next_action = jnp.clip(next_action + noise, -max_action, max_action)
+    next_action = td3_core.target_action(actor_target, batch, key, config, max_action)
     penalty = ((next_action - batch.next_actions) ** 2).sum(axis=-1)
     target_q = networks.critic_apply(critic_target, batch.next_observations, next_action)
     next_value = target_q.min(axis=0) - critic_bc_weight * penalty
@@ -205,46 +173,21 @@ def update(
     key: jax.Array,
     config: ReBRACConfig,
     max_action: float,
+    delayed: bool | None = None,
 ) -> tuple[ReBRACState, dict[str, jax.Array]]:
-    """One gradient step of ReBRAC. Pure: the same inputs always give the same outputs."""
-    actor_tx, critic_tx = _optimizers(config)
-    grads, critic_metrics = jax.grad(critic_loss, has_aux=True)(
-        state.critic, state.critic_target, state.actor_target, batch, key, config, max_action
-    )
-    critic, critic_opt = apply_gradients(critic_tx, grads, state.critic_opt, state.critic)
-    step = state.step + 1
+    """One gradient step ``t`` of ReBRAC; ``delayed``: whether ``t % policy_freq == 0`` (the
+    actor's step), None: from ``state.step`` (see :func:`eabc.agents.td3_core.scheduled`). Pure:
+    the same inputs always give the same outputs."""
+    return td3_core.scheduled(_step, state, batch, key, config, max_action, delayed)
 
-    def actor_step(_):  # on the critics just updated, as TD3+BC and CORL
-        grads, metrics = jax.grad(actor_loss, has_aux=True)(
-            state.actor, critic, batch, config, max_action
-        )
-        actor, actor_opt = apply_gradients(actor_tx, grads, state.actor_opt, state.actor)
-        targets = (
-            networks.polyak(state.actor_target, actor, config.tau),
-            networks.polyak(state.critic_target, critic, config.tau),
-        )
-        return (actor, actor_opt, *targets), metrics
 
-    def skip(_):
-        zeros = jax.tree.map(
-            lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(actor_step, None)[1]
-        )
-        return (state.actor, state.actor_opt, state.actor_target, state.critic_target), zeros
-
-    updated = step % config.policy_freq == 0
-    (actor, actor_opt, actor_target, critic_target), actor_metrics = jax.lax.cond(
-        updated, actor_step, skip, None
-    )
-    new_state = ReBRACState(
-        actor=actor,
-        critic=critic,
-        actor_target=actor_target,
-        critic_target=critic_target,
-        actor_opt=actor_opt,
-        critic_opt=critic_opt,
-        step=step,
-    )
-    return new_state, {**critic_metrics, **actor_metrics, "actor_updated": updated}
+def _step(state, batch: BatchWithNextActions, key, config: ReBRACConfig, max_action, delayed):
+    # Steps 1-3: the smoothed target action, eq. (4)'s penalised target, the critics' step.
+    new, metrics = td3_core.critic_step(state, critic_loss, batch, key, config, max_action)
+    if delayed:  # steps 4-5, eq. (3), on the critics just updated (as TD3+BC and CORL)
+        new, actor_metrics = td3_core.actor_step(new, config, actor_loss, batch, config, max_action)
+        metrics = {**metrics, **actor_metrics}
+    return new, metrics
 
 
 def resolve(config: ReBRACConfig, dataset_name: str, steps: int | None, given: frozenset[str]):
@@ -268,6 +211,7 @@ def resolve(config: ReBRACConfig, dataset_name: str, steps: int | None, given: f
 # docs/speed.md): 4 times the batch, one more hidden layer and the LayerNorms.
 ALGORITHMS = (
     Algorithm("rebrac", "ReBRAC", PRESETS["rebrac"], init, update, resolve=resolve,
+              delayed_period=td3_core.delayed_period,
               batch_size=1024, next_actions=True, column=12.5,
               step_metrics=CRITIC_METRICS | {"critic_bc_penalty"}, steps_per_s=82.0),
 )  # fmt: skip

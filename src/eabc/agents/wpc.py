@@ -5,7 +5,8 @@ On top of TD3+BC (the ``td3bc`` setting of the EABC rule) a state-value network 
 regressed on the target critics' value of the dataset action, ``min_i Q_targ_i(s, a)``; the
 advantage ``A(s, a) = min_i Q_targ_i(s, a) - V(s)`` then decides the BC mask,
 ``w = 1[A(s, a) > 0]``, where EABC draws ``w ~ Bernoulli(p)``. Everything else (critic, target
-smoothing, delayed actor, lambda normalisation) is TD3+BC's, shared with :mod:`eabc.agents.eabc`.
+smoothing, delayed actor, lambda normalisation) is TD3+BC's, shared with :mod:`eabc.agents.eabc`
+and :mod:`eabc.agents.td3_core`.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import jax
 import optax
 
 from eabc import networks, pytree
-from eabc.agents import eabc
+from eabc.agents import eabc, td3_core
 from eabc.agents.common import Batch, BuiltOn, apply_gradients
 from eabc.agents.contract import Algorithm
 
@@ -69,47 +70,44 @@ def value_loss(value, critic_target, batch: Batch):
 
 
 def update(
-    state: WPCState, batch: Batch, key: jax.Array, config: WPCConfig, max_action: float
+    state: WPCState,
+    batch: Batch,
+    key: jax.Array,
+    config: WPCConfig,
+    max_action: float,
+    delayed: bool | None = None,
 ) -> tuple[WPCState, dict[str, jax.Array]]:
-    """Critic step, value step, then (every policy_freq steps) the advantage-masked actor step."""
-    base = state.td3bc
+    """One gradient step ``t``; ``delayed``: whether ``t % policy_freq == 0`` (the actor's step),
+    None: from the step count (see :func:`eabc.agents.td3_core.scheduled`)."""
+    return td3_core.scheduled(_step, state, batch, key, config, max_action, delayed)
+
+
+def _step(state: WPCState, batch: Batch, key, config: WPCConfig, max_action, delayed: bool):
+    """TD3+BC's critic step, the value step, then on delayed steps the advantage-masked actor
+    step and Polyak averaging."""
     critic_key, actor_key = jax.random.split(key)
-    critic, critic_opt, critic_metrics = eabc.critic_step(
-        base, batch, critic_key, config, max_action
+    td3bc, metrics = td3_core.critic_step(
+        state.td3bc, eabc.critic_loss, batch, critic_key, config, max_action
     )
     grads, (advantage, value_metrics) = jax.grad(value_loss, has_aux=True)(
-        state.value, base.critic_target, batch
+        state.value, state.td3bc.critic_target, batch
     )
     value, value_opt = apply_gradients(
         optax.adam(config.value_lr), grads, state.value_opt, state.value
     )
-    step = base.step + 1
-    keep = advantage > 0
-    (actor, actor_opt, actor_target, critic_target), actor_metrics = eabc.delayed_actor_step(
-        base, critic, step, batch, actor_key, config, max_action, keep
-    )
-    td3bc = base.replace(
-        actor=actor,
-        critic=critic,
-        actor_target=actor_target,
-        critic_target=critic_target,
-        actor_opt=actor_opt,
-        critic_opt=critic_opt,
-        step=step,
-    )
-    new_state = WPCState(td3bc=td3bc, value=value, value_opt=value_opt)
-    metrics = {
-        **critic_metrics,
-        **value_metrics,
-        **actor_metrics,
-        "actor_updated": step % config.policy_freq == 0,
-    }
-    return new_state, metrics
+    metrics = {**metrics, **value_metrics}
+    if delayed:  # TD3+BC's actor loss with w = 1[A(s, a) > 0] in place of w ~ Bernoulli(p)
+        td3bc, actor_metrics = td3_core.actor_step(
+            td3bc, config, eabc.actor_loss, batch, actor_key, config, max_action, advantage > 0
+        )
+        metrics = {**metrics, **actor_metrics}
+    return WPCState(td3bc=td3bc, value=value, value_opt=value_opt), metrics
 
 
 ALGORITHMS = (
     Algorithm(
         "wpc", "wPC", PRESETS["wpc"], init, update, column=5, steps_per_s=452.0,
+        delayed_period=td3_core.delayed_period,
         cost=lambda config: config.num_critics / 2, report_settings=("num_critics",), cli_flags=("num_critics", "alpha"),
         state_layout=2,  # 2: the TD3+BC state as one field
     ),

@@ -161,6 +161,8 @@ def _train_seeds(
     update = functools.partial(
         first.algorithm.update, config=first.agent_config, max_action=first.max_action
     )
+    delayed = first.algorithm.delayed_period  # a fixed schedule: chunks without a branch
+    period = delayed(first.agent_config) if delayed else None
     loggers = [RunLogger(run.run_dir, resume_step=run.step) for run in runs]
     writers = [
         functools.partial(_write, run, logger, q_range) for run, logger in zip(runs, loggers)
@@ -189,6 +191,8 @@ def _train_seeds(
                     update,
                     config.batch_size,
                     length,
+                    period,
+                    first.step,
                 )
                 outputs = [(agent, key, metrics)]
             else:
@@ -200,6 +204,8 @@ def _train_seeds(
                     update,
                     config.batch_size,
                     length,
+                    period,
+                    first.step,
                 )
                 outputs = [
                     jax.tree.map(lambda x, i=i: x[i], (agents, keys, metrics))
