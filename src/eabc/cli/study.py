@@ -11,7 +11,7 @@ from typing import Annotated
 import tyro
 
 from eabc import paths
-from eabc.ranges import Positive
+from eabc.ranges import NonNegative, Positive, Steps
 
 SMOKE = {"steps": 40, "log_interval": 20, "eval_interval": 20, "checkpoint_interval": 20,
          "eval_episodes": 1}  # fmt: skip
@@ -49,10 +49,10 @@ class Study:
     data_workers: Positive | None = None
     """Processes that make each of the queue's missing datasets, one dataset after another while
     the groups before it train (default: the CPU cores less one, at least one)."""
-    eval_workers: int | None = None
+    eval_workers: NonNegative | None = None
     """Processes that evaluate the runs while training goes on, one pool for the whole queue
     (default: the CPU cores less one; 0 evaluates in the training process between chunks)."""
-    steps: Positive | None = None
+    steps: Steps | None = None
     """Gradient steps per run (default the spec's)."""
     smoke: bool = False
     """The same code path at toy sizes: the queue's first two groups with two seeds each, 40
@@ -90,8 +90,6 @@ def run_study(cmd: Study) -> None:
         runs = [r for r in runs if r.run_id not in done]
     deadline = None if cmd.within is None else time.time() + sweep.parse_duration(cmd.within)
     workers = cmd.data_workers or max(1, (os.cpu_count() or 2) - 1)
-    if cmd.eval_workers is not None and cmd.eval_workers < 0:
-        raise ValueError(f"--eval-workers must be 0 or more, got {cmd.eval_workers}")
     evaluators = cmd.eval_workers
     if evaluators is None:
         evaluators = max(1, (os.cpu_count() or 2) - 1)
