@@ -92,15 +92,20 @@ def test_the_table_keeps_the_longest_rollout_it_is_given(tmp_path, table):
     assert entry["starts"][: len(first)] == first
 
 
-def test_the_shipped_table_covers_the_first_datasets_of_the_queue():
-    """Whatever else it holds: the rollouts the GPU study makes first, at full size."""
+@pytest.mark.parametrize(
+    "name", ["hopper-medium", "halfcheetah-medium", "walker2d-medium", "hopper-medium-replay",
+             "hopper-random", "walker2d-random", "halfcheetah-medium-replay"],
+)  # fmt: skip
+def test_the_shipped_table_covers_the_random_medium_and_replay_datasets(name):
+    """Every rollout of each, at full size, with a start about every SPACING rows."""
     rollouts = json.loads(parallel.TABLE.read_text())["rollouts"]
-    for name in ("hopper-medium", "halfcheetah-medium"):
-        (spec,) = generate.rollouts(name, 0, generate.default_size(name))
-        starts = rollouts[spec.key()]["starts"]
-        assert rollouts[spec.key()]["transitions"] == spec.size and len(starts) >= 90
-        rows = [row for row, _ in starts]
-        assert rows == sorted(rows) and np.diff(rows).max() < 2 * parallel.SPACING
+    for spec in generate.rollouts(name, 0, generate.default_size(name)):
+        entry = rollouts[spec.key()]
+        rows = [0] + [row for row, _ in entry["starts"] if row < spec.size]
+        assert entry["transitions"] >= spec.size and len(rows) >= spec.size // parallel.SPACING
+        assert (
+            np.all(np.diff(rows) > 0) and np.diff([*rows, spec.size]).max() < 2 * parallel.SPACING
+        )
 
 
 def test_workers_0_is_refused_in_one_line(tmp_path):
