@@ -18,6 +18,7 @@ checked by :func:`check_memory` against what this machine has free, before anyth
 from __future__ import annotations
 
 import math
+import numbers
 import operator
 import os
 import types
@@ -88,7 +89,8 @@ def describe(hint) -> str:
 def within(value, hint) -> bool:
     """Whether ``value`` is of ``hint``'s kind (an int, not a bool; a finite number) and range."""
     base, constraints = _parts(hint)
-    if isinstance(value, bool) or not isinstance(value, int if base is int else int | float):
+    kinds = numbers.Integral if base is int else numbers.Real  # NumPy's integers too
+    if isinstance(value, bool) or not isinstance(value, kinds):
         return False
     if base is not int and not math.isfinite(value):
         return False
@@ -102,10 +104,11 @@ def within(value, hint) -> bool:
 def _unwrapped(hint):
     """``hint`` without an outer ``Annotated`` around an optional type (a command line's help
     settings on ``Positive | None``): the range is the inner type's."""
-    while typing.get_origin(hint) is Annotated and typing.get_origin(
-        typing.get_args(hint)[0]
-    ) in (typing.Union, types.UnionType):
-        hint = typing.get_args(hint)[0]
+    while typing.get_origin(hint) is Annotated:
+        inner = typing.get_args(hint)[0]
+        if typing.get_origin(inner) not in (typing.Union, types.UnionType):
+            break
+        hint = inner
     return hint
 
 
