@@ -174,8 +174,8 @@ def parse(argv: list[str]):
         config_class = TrainConfig if isinstance(cmd, Train) else SACTrainConfig
         cmd = dataclasses.replace(cmd, config=_checked(cmd.config, config_class))
     if isinstance(cmd, Train | Sac) and cmd.resume:  # no option resume would silently ignore
-        allowed = RESUME_OPTIONS if isinstance(cmd, Train) else {"resume", "progress", "no-progress"}
-        refuse_ignored_with_resume(argv, allowed)
+        sac = {"resume", "progress", "no-progress"}
+        refuse_ignored_with_resume(argv, RESUME_OPTIONS if isinstance(cmd, Train) else sac)
     if isinstance(cmd, Train) and not cmd.resume:  # the algorithm's settings, named as flags
         check_agent(cmd.config, cmd.agent, cmd.set)
     check_flags(cmd)  # the other numbers: ranges declared on the command's fields
