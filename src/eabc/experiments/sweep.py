@@ -413,10 +413,19 @@ def run_local(
                     if not job:
                         continue
                 name = job[0].group_id if len(job) > 1 else job[0].run_id
-                out = open(logs / f"{name}.log", "ab")  # noqa: SIM115
                 payload = json.dumps([r.to_json() for r in job])
                 cmd = [sys.executable, "-m", "eabc.experiments.worker", str(root), payload]
-                active.append((subprocess.Popen(cmd, env=env, stdout=out, stderr=out), job, out))
+                out = None
+                try:  # a job that cannot start fails alone: the running ones go on
+                    out = open(logs / f"{name}.log", "ab")  # noqa: SIM115
+                    proc = subprocess.Popen(cmd, env=env, stdout=out, stderr=out)
+                except OSError as error:
+                    if out is not None:
+                        out.close()
+                    failures.append(name)
+                    log(f"FAILED {name}: it could not start ({error}); the other jobs go on")
+                    continue
+                active.append((proc, job, out))
                 log(
                     f"started {name} ({len(job)} run{'s' * (len(job) > 1)}; {ended} of {total} jobs done)"
                 )

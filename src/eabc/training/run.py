@@ -85,13 +85,13 @@ class TrainConfig:
             raise ValueError(
                 f"algo: unknown algorithm {self.algo!r}; choose one of {', '.join(ALGORITHMS)}"
             )
+        if self.batch_size is None:  # set here, so config.json records the size trained with
+            object.__setattr__(self, "batch_size", get_algorithm(self.algo).batch_size)
         schedules = typing.get_args(typing.get_type_hints(TrainConfig)["eval_schedule"])
         if self.eval_schedule not in schedules:
             raise ValueError(
                 f"eval_schedule must be one of {', '.join(schedules)}, got {self.eval_schedule!r}"
             )
-        if self.batch_size is None:  # set here, so config.json records the size trained with
-            object.__setattr__(self, "batch_size", get_algorithm(self.algo).batch_size)
         hints = typing.get_type_hints(TrainConfig, include_extras=True)
         for field in dataclasses.fields(self):  # each number within its declared range
             if ranges.constrained(hints[field.name]):
@@ -106,6 +106,9 @@ class TrainConfig:
                 )
         if self.cache_dir is not None:  # checked now, not after minutes of making a dataset
             check_cache_dir(self.cache_dir, "cache_dir")
+        if self.reward_convention is None:  # set here, so config.json records what was used
+            object.__setattr__(self, "reward_convention", rewards.default(self.algo))
+        rewards.check(self.reward_convention)
 
     def evaluates(self, step: int) -> bool:
         """Whether the run evaluates after ``step`` steps (always after its last): see
@@ -124,9 +127,6 @@ class TrainConfig:
         return [s for s in steps if self.evaluates(s)] + (
             [self.steps] if self.steps % self.eval_interval and self.steps > after else []
         )
-        if self.reward_convention is None:  # set here, so config.json records what was used
-            object.__setattr__(self, "reward_convention", rewards.default(self.algo))
-        rewards.check(self.reward_convention)
 
 
 def check_cache_dir(path: str | Path, what: str) -> None:

@@ -72,9 +72,7 @@ def _estimate(run: Run) -> str:
     probed only when the reference estimate is long enough to matter."""
     config = run.config
     left = max(config.steps - run.step, 0)
-    evaluations = (config.steps // config.eval_interval - run.step // config.eval_interval) * (
-        config.eval_episodes
-    )
+    evaluations = len(config.evaluation_steps(after=run.step)) * config.eval_episodes
     args = (run.algorithm, run.agent_config, left, evaluations)
     quick = estimate_seconds(*args) < 10
     speed = timing.host_speed(config.cache_dir, measure=not quick)
