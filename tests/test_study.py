@@ -150,7 +150,7 @@ def test_stability_table_says_where_the_critics_fail():
         "| hopper-medium | EABC | 2 | 7.0 ± 2.8 | 2/2 | 11,000 | 3,000 | 1.50% | 3.00 | 0.25 |"
         in text
     )
-    assert "| hopper-medium | TD3+BC | 1 | 48.0 | 0/1 |  | 150 |  |  | 1.00 |" in text
+    assert "| hopper-medium | TD3+BC | 1 | 48.0 | 0/1 | – | 150 | – | – | 1.00 |" in text
 
 
 def test_a_run_keeps_the_ensembles_state_from_just_before_its_critics_ran_away(tmp_path):
