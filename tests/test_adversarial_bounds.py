@@ -341,12 +341,15 @@ def _eabc(*argv: str, **kwargs) -> subprocess.Popen:
                             start_new_session=True, **kwargs)  # fmt: skip
 
 
-def _ctrl_c(proc: subprocess.Popen, ready, timeout: float = 120) -> tuple[int, list[str]]:
-    """Ctrl-C to ``proc``'s group once ``ready()``; its exit code and stderr lines."""
+def _ctrl_c(proc: subprocess.Popen, ready, timeout: float = 600) -> tuple[int, list[str]]:
+    """Ctrl-C to ``proc``'s group once ``ready()``; its exit code and stderr lines. Waits up to
+    ``timeout`` for that (a loaded 2-core host compiles slowly): an interrupt before the state
+    the test names would test something else."""
     deadline = time.time() + timeout
     while not ready() and time.time() < deadline and proc.poll() is None:
         time.sleep(0.05)
     assert proc.poll() is None, "it ended before it could be interrupted"
+    assert ready(), f"not ready within {timeout} s"
     os.killpg(proc.pid, signal.SIGINT)
     _, err = proc.communicate(timeout=120)
     return proc.returncode, [line for line in err.decode().splitlines() if line.strip()]
