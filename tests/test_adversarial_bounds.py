@@ -336,9 +336,16 @@ def _without_wall(run_dir: Path) -> tuple[str, dict]:
 def _eabc(*argv: str, **kwargs) -> subprocess.Popen:
     """``eabc ARGV`` in its own session (a terminal's Ctrl-C reaches its whole group)."""
     env = {**os.environ, "EABC_FAST_COMPILE": "1"}
+    # SIGINT as a terminal gives it: a suite started in the background (nohup, a CI runner's
+    # job) has it ignored, and children inherit that, so Python would never see the Ctrl-C.
     return subprocess.Popen([sys.executable, "-m", "eabc.cli", *argv], env=env,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                            start_new_session=True, **kwargs)  # fmt: skip
+                            start_new_session=True, preexec_fn=_default_sigint,
+                            **kwargs)  # fmt: skip
+
+
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 def _ctrl_c(proc: subprocess.Popen, ready, timeout: float = 600) -> tuple[int, list[str]]:
