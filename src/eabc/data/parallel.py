@@ -274,7 +274,7 @@ class Pool:
 
     def submit(self, work: Callable, *args) -> concurrent.futures.Future:
         """``work(*args)`` in a worker: the future of its result (a dict of rows, or Collected)."""
-        with _bare_children():  # the executor starts its processes as work arrives
+        with bare_children():  # the executor starts its processes as work arrives
             future = self.executor.submit(work, *args)
         future.add_done_callback(self._progress)
         return future
@@ -297,7 +297,7 @@ class Pool:
 
 
 @contextlib.contextmanager
-def _bare_children():
+def bare_children():
     """Processes spawned meanwhile are single-threaded (BLAS pools of one thread) and start from
     the work's module alone: a script run as the main module (the ``eabc`` command, which imports
     JAX) is not run again in each of them, as spawning otherwise does."""

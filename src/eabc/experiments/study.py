@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import concurrent.futures
 import json
-import os
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -30,6 +29,7 @@ from eabc.data import generate
 from eabc.experiments import results, sweep
 from eabc.experiments.spec import RunSpec
 from eabc.training import eval_pool
+from eabc.training.checkpoint import atomic_write
 
 OUT_FILES = (
     "runs.csv",  # one row per finished run, as `eabc report` writes it (read back by --include)
@@ -42,9 +42,7 @@ OUT_FILES = (
 
 
 def _write_atomic(path: Path, text: str) -> None:
-    part = path.with_name(f".{path.name}.part")
-    part.write_text(text, encoding="utf-8")
-    os.replace(part, path)
+    atomic_write(path, text.encode("utf-8"))
 
 
 class StudyLog:

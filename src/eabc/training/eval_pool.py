@@ -20,20 +20,16 @@ from __future__ import annotations
 
 import collections
 import concurrent.futures
-import contextlib
 import dataclasses
 import multiprocessing
-import os
-import sys
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
 from eabc.data.dataset import Normalizer
+from eabc.data.parallel import bare_children
 from eabc.evaluation import Evaluator, Policy
-
-_THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -87,7 +83,7 @@ class EvaluationPool:
 
     def submit(self, task: Task) -> concurrent.futures.Future:
         """The future of ``task``'s result."""
-        with _bare_children():  # the executor starts its processes as work arrives
+        with bare_children():  # the executor starts its processes as work arrives
             return self._executor.submit(evaluate, task)
 
     def close(self, finished: bool = True) -> None:
@@ -100,29 +96,6 @@ class EvaluationPool:
 
     def __exit__(self, kind, error, trace) -> None:
         self.close(finished=kind is None)
-
-
-@contextlib.contextmanager
-def _bare_children():
-    """Processes spawned meanwhile are single-threaded (BLAS pools of one thread) and start from
-    the work's module alone: a script run as the main module (the ``eabc`` command, which imports
-    JAX) is not run again in each of them, as spawning otherwise does."""
-    saved = {name: os.environ.get(name) for name in _THREAD_VARIABLES}
-    os.environ.update(dict.fromkeys(_THREAD_VARIABLES, "1"))
-    main = sys.modules.get("__main__")
-    script = getattr(main, "__file__", None) if getattr(main, "__spec__", None) is None else None
-    if script is not None:
-        del main.__file__
-    try:
-        yield
-    finally:
-        if script is not None:
-            main.__file__ = script
-        for name, value in saved.items():
-            if value is None:
-                os.environ.pop(name, None)
-            else:
-                os.environ[name] = value
 
 
 Write = Callable[[dict[str, Any], "dict[str, float] | None", "dict[str, Any] | None"], None]
