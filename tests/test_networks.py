@@ -1,5 +1,6 @@
-"""The LayerNorm critics' hand-written gradient against LayerNorm then ReLU written out and
-differentiated by JAX: values and gradients, one layer and whole ensembles, large offsets."""
+"""The LayerNorm critics' hand-written gradients against the layers written out and
+differentiated by JAX (LayerNorm then ReLU, EABC's; ReLU then LayerNorm, ReBRAC's authors'):
+values and gradients, one layer and whole ensembles, large offsets."""
 
 from __future__ import annotations
 
@@ -22,8 +23,18 @@ def reference_layer_norm_relu(h, scale, offset):
     return jax.nn.relu(h * scale + offset)
 
 
-def reference_ensemble_mlp(params, x):
+def reference_relu_layer_norm(h, scale, offset):
+    """ReLU then LayerNorm (Flax's epsilon) written out: what ``networks.relu_layer_norm``, the
+    authors' ReBRAC critic layer, must equal."""
+    x = jax.nn.relu(h)
+    mean = x.mean(axis=-1, keepdims=True)
+    var = ((x - mean) ** 2).mean(axis=-1, keepdims=True)
+    return (x - mean) * jax.lax.rsqrt(var + networks.FLAX_LAYER_NORM_EPS) * scale + offset
+
+
+def reference_ensemble_mlp(params, x, norm_after_relu=False):
     """``ensemble_mlp`` as it was: one product for the first layer, the reference LayerNorm."""
+    hidden = reference_relu_layer_norm if norm_after_relu else reference_layer_norm_relu
     n = networks.num_layers(params)
     k, fan_in, width = params["w0"].shape
     if x.ndim == 3:
@@ -33,7 +44,7 @@ def reference_ensemble_mlp(params, x):
         h = (x @ w0).reshape(-1, k, width).transpose(1, 0, 2) + params["b0"][:, None, :]
     for layer in range(1, n):
         scale, offset = params[f"g{layer - 1}"], params[f"h{layer - 1}"]
-        h = reference_layer_norm_relu(h, scale[:, None, :], offset[:, None, :])
+        h = hidden(h, scale[:, None, :], offset[:, None, :])
         h = jnp.einsum("kbi,kio->kbo", h, params[f"w{layer}"]) + params[f"b{layer}"][:, None, :]
     return h
 
@@ -84,6 +95,29 @@ def test_layer_norm_relu_equals_the_formula_in_value_and_gradient(shape, offset_
     assert_close(got, want)
     for g, w in zip(got_grads, want_grads):
         assert_close(g, w)
+
+
+@pytest.mark.parametrize("offset_size", [0.0, 30.0])
+@pytest.mark.parametrize("shape", [(10, 64, 256), (32, 48), (3, 16, 7)])
+def test_relu_layer_norm_equals_the_formula_in_value_and_gradient(shape, offset_size):
+    args, cotangent = random_layer(len(shape) + int(offset_size), shape, offset_size)
+    got, got_grads = value_and_grads(networks.relu_layer_norm, args, cotangent)
+    want, want_grads = value_and_grads(reference_relu_layer_norm, args, cotangent)
+    assert 0.2 < float(jnp.mean(args[0] > 0)) <= 1.0
+    assert_close(got, want)
+    for g, w in zip(got_grads, want_grads):
+        assert_close(g, w)
+
+
+def test_relu_layer_norm_of_a_row_without_active_unit_is_its_offset():
+    """Every unit of a row at or below 0: the normalised row is 0 (epsilon keeps it finite), the
+    output the offset, and no gradient reaches h."""
+    h = -jnp.abs(jnp.asarray(normal(11, (2, 4, 8)))).at[1].set(1.0 + jnp.arange(8.0))
+    scale, offset = jnp.full((2, 1, 8), 2.0), jnp.asarray(normal(12, (2, 1, 8)))
+    out = networks.relu_layer_norm(h, scale, offset)
+    np.testing.assert_array_equal(out[0], jnp.broadcast_to(offset[0], (4, 8)))
+    grad = jax.grad(lambda h: networks.relu_layer_norm(h, scale, offset).sum() ** 2)(h)
+    assert bool(jnp.all(grad[0] == 0)) and bool(jnp.all(jnp.isfinite(grad)))
 
 
 def float64_layer_norm_relu(h, scale, offset, cotangent, active):
@@ -169,16 +203,23 @@ def layer_norm_critic(seed, k, sizes, bias_offset):
     return {name: jnp.asarray(p, jnp.float32) for name, p in params.items()}
 
 
+@pytest.mark.parametrize("norm_after_relu", [False, True])
 @pytest.mark.parametrize("bias_offset", [0.0, 20.0])
 @pytest.mark.parametrize("per_member_input", [False, True])
-def test_ensemble_equals_the_formula_in_value_and_gradient(bias_offset, per_member_input):
+def test_ensemble_equals_the_formula_in_value_and_gradient(
+    bias_offset, per_member_input, norm_after_relu
+):
     k, obs_act, batch = 10, 14, 64
     params = layer_norm_critic(1, k, (obs_act, 256, 256, 1), bias_offset)
     shape = (k, batch, obs_act) if per_member_input else (batch, obs_act)
     x = jnp.asarray(normal(2, shape, 2.0))
     cotangent = jnp.asarray(normal(3, (k, batch, 1)))
-    got, (got_params, got_x) = value_and_grads(networks.ensemble_mlp, (params, x), cotangent)
-    want, (want_params, want_x) = value_and_grads(reference_ensemble_mlp, (params, x), cotangent)
+    got, (got_params, got_x) = value_and_grads(
+        lambda p, x: networks.ensemble_mlp(p, x, norm_after_relu), (params, x), cotangent
+    )
+    want, (want_params, want_x) = value_and_grads(
+        lambda p, x: reference_ensemble_mlp(p, x, norm_after_relu), (params, x), cotangent
+    )
     assert_close(got, want)
     assert_close(got_x, want_x)
     assert got_params.keys() == want_params.keys()
@@ -231,3 +272,4 @@ def test_nan_inputs_stay_nan():
     h = jnp.ones((2, 3, 8)).at[0, 1, 2].set(jnp.nan)
     out = networks.layer_norm_relu(h, jnp.ones((2, 1, 8)), jnp.zeros((2, 1, 8)))
     assert bool(jnp.all(jnp.isnan(out[0, 1]))) and not bool(jnp.any(jnp.isnan(out[1])))
+

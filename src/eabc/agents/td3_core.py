@@ -58,16 +58,33 @@ def optimizers(config: Any) -> tuple[optax.GradientTransformation, optax.Gradien
     return optax.adam(config.actor_lr), optax.adam(config.critic_lr)
 
 
-def init(key: jax.Array, obs_dim: int, act_dim: int, config: Any) -> TD3State:
+def init(
+    key: jax.Array,
+    obs_dim: int,
+    act_dim: int,
+    config: Any,
+    hidden_bias: float | None = None,
+    actor_output_bound: float | None = None,
+    critic_output_bound: float | None = None,
+) -> TD3State:
     """An actor ``obs -> hidden_dims -> act`` and ``num_critics`` critics ``(obs, act) ->
-    hidden_dims -> 1`` (LayerNorm with ``critic_layer_norm``), each target a copy of its network."""
+    hidden_dims -> 1`` (LayerNorm with ``critic_layer_norm``), each target a copy of its network;
+    PyTorch's initialisation, but for the hidden biases and output layers the arguments set
+    (:func:`eabc.networks.init_mlp`)."""
     actor_key, critic_key = jax.random.split(key)
-    actor = networks.init_mlp(actor_key, (obs_dim, *config.hidden_dims, act_dim))
+    actor = networks.init_mlp(
+        actor_key,
+        (obs_dim, *config.hidden_dims, act_dim),
+        hidden_bias=hidden_bias,
+        output_bound=actor_output_bound,
+    )
     critic = networks.init_mlp(
         critic_key,
         (obs_dim + act_dim, *config.hidden_dims, 1),
         num_members=config.num_critics,
         layer_norm=config.critic_layer_norm,
+        hidden_bias=hidden_bias,
+        output_bound=critic_output_bound,
     )
     actor_tx, critic_tx = optimizers(config)
     return TD3State(
