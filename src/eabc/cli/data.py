@@ -5,7 +5,9 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import signal
 import sys
+import threading
 from pathlib import Path
 from typing import Annotated
 
@@ -164,7 +166,7 @@ def run_data(cmd: DataMake | DataInfo | DataList | DataExport) -> None:
                 print(f"{path} (cached; --force to remake)")
                 return
             print(f"{path} was made from older zoo policies; making it again", file=sys.stderr)
-        print(generate.make(cmd.name, path, cmd.seed, cmd.size, workers=cmd.workers))
+        print(_make(cmd, path))
     elif isinstance(cmd, DataList):
         header = f"{'dataset':26s} {'transitions':>11s} {'episodes':>8s} {'return':>17s} {'score':>6s} {'D4RL':>5s}  file"
         print(header)
@@ -215,6 +217,68 @@ def run_data(cmd: DataMake | DataInfo | DataList | DataExport) -> None:
             from eabc.data import antmaze_collect  # noqa: PLC0415
 
             print(antmaze_collect.plot_coverage(dataset, Path(cmd.plot).expanduser()))
+
+
+def _make(cmd: DataMake, path: Path) -> Path:
+    """``generate.make``; Ctrl-C ends it in one line that says what is in the cache and how to
+    go on. A Ctrl-C that Python dropped (raised inside a weakref callback or a ``__del__``, where
+    an exception is only printed) still ends the command once the dataset is written."""
+    from eabc.cli.options import Interrupted  # noqa: PLC0415
+    from eabc.data import generate  # noqa: PLC0415
+
+    before = _file_state(path)
+    noted: list[int] = []
+
+    def interrupt(signum, frame):
+        noted.append(signum)
+        raise KeyboardInterrupt
+
+    own = threading.current_thread() is threading.main_thread()
+    own = own and signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    if own:
+        signal.signal(signal.SIGINT, interrupt)
+    try:
+        made = generate.make(cmd.name, path, cmd.seed, cmd.size, workers=cmd.workers)
+        if noted:
+            raise KeyboardInterrupt
+    except KeyboardInterrupt:
+        raise Interrupted(_after_interrupt(cmd, path, before)) from None
+    finally:
+        if own:
+            signal.signal(signal.SIGINT, signal.default_int_handler)
+    return made
+
+
+def _file_state(path: Path) -> tuple[int, int] | None:
+    try:
+        stat = path.stat()
+    except OSError:
+        return None
+    return stat.st_ino, stat.st_mtime_ns
+
+
+def _after_interrupt(cmd: DataMake, path: Path, before: tuple[int, int] | None) -> str:
+    """One line: what an interrupted ``eabc data make`` left at ``path`` and how to go on."""
+    from eabc.data import generate  # noqa: PLC0415
+
+    flags = "".join(
+        f" --{field.name.replace('_', '-')} {getattr(cmd, field.name)}"
+        for field in dataclasses.fields(cmd)
+        if field.name in ("seed", "size", "cache_dir", "workers")
+        and getattr(cmd, field.name) != field.default
+    )
+    again = f"eabc data make {cmd.name}{flags}"
+    now = _file_state(path)
+    if now is not None and now != before and generate.is_current(path, cmd.name):
+        return f"interrupted after {path} was written: it is complete and kept"
+    if now is not None and now == before:
+        return (
+            f"interrupted: {path} is as it was, nothing written; to make it again: {again} --force"
+        )
+    return (
+        f"interrupted: {cmd.name} was not made, nothing of it kept in {path.parent}; "
+        f"to make it (from the start): {again}"
+    )
 
 
 def _check_making_memory(cmd: DataMake) -> None:

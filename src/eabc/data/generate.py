@@ -11,6 +11,8 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import signal
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -476,8 +478,9 @@ def save_hdf5(dataset: Dataset, path: str | os.PathLike) -> Path:
     _remove_orphans(path)
     tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")  # two makers never share a file
     try:
-        with h5py.File(tmp, "w") as f:
+        with _signals_held() as raise_held, h5py.File(tmp, "w") as f:
             for key in _ARRAYS:
+                raise_held()
                 f.create_dataset(
                     key, data=getattr(dataset, key), compression="gzip", compression_opts=1
                 )
@@ -489,11 +492,46 @@ def save_hdf5(dataset: Dataset, path: str | os.PathLike) -> Path:
             if dataset.reward_offset is not None:
                 f.attrs["reward_offset"] = dataset.reward_offset
             f.attrs["metadata"] = json.dumps(dataset.metadata)
+            f.close()
+            raise_held()
         os.replace(tmp, path)
     except BaseException:  # interrupted (Ctrl-C, a terminate signal) or failed: no half file
         tmp.unlink(missing_ok=True)
         raise
     return path
+
+
+_HELD_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+@contextlib.contextmanager
+def _signals_held():
+    """Ctrl-C and SIGTERM noted, not acted on, while h5py writes; yields a function that acts on
+    a noted one (its own handler raises KeyboardInterrupt or SystemExit) at a point where that is
+    safe. Why: h5py frees its objects in weakref callbacks, and an exception a signal handler
+    raises there is printed as "Exception ignored" and dropped, so Ctrl-C during a write was lost
+    and the command ended 0 as if never interrupted."""
+    if threading.current_thread() is not threading.main_thread():
+        yield lambda: None  # only the main thread receives signals or may set handlers
+        return
+    noted: list[tuple[int, object]] = []
+    previous = {number: signal.getsignal(number) for number in _HELD_SIGNALS}
+    for number, handler in previous.items():
+        if callable(handler):  # one that is ignored stays ignored
+            signal.signal(number, lambda signum, frame: noted.append((signum, frame)))
+
+    def raise_held() -> None:
+        if noted:
+            signum, frame = noted[0]
+            previous[signum](signum, frame)
+
+    try:
+        yield raise_held
+    finally:
+        for number, handler in previous.items():
+            if handler is not None:
+                signal.signal(number, handler)
+        raise_held()  # a signal noted after the last check still ends the command
 
 
 def _remove_orphans(path: Path, quiet_s: float = 60.0) -> None:
