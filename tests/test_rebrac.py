@@ -16,9 +16,9 @@ from learning import MARGIN, late_gain
 
 from eabc.agents import get_algorithm, rebrac
 from eabc.agents.common import Batch, BatchWithNextActions
-from eabc.data.dataset import Dataset, Normalizer
+from eabc.data.dataset import Dataset, DatasetError, Normalizer
 from eabc.training import trainer
-from eabc.training.chunks import data_next_actions, device_data
+from eabc.training.chunks import data_next_actions, device_data, next_action_known
 
 K = 3  # more critics than ReBRAC's 2, so that the tests see the minimum over all of them
 MAX_ACTION = 2.0
@@ -40,7 +40,8 @@ def with_next_actions(batch: Batch, seed: int = 1) -> BatchWithNextActions:
 
 
 def np_ln_q(critic, obs, act):
-    """Every member's Q in float64, LayerNorm (eps 1e-5) before each hidden ReLU: ``[K, B]``."""
+    """Every member's Q in float64, each hidden layer Dense, ReLU, LayerNorm (eps 1e-6, Flax's),
+    as the authors' critics: ``[K, B]``."""
     out = []
     for i in range(K):
         params = {name: np.asarray(v[i], np.float64) for name, v in critic.items()}
@@ -49,8 +50,9 @@ def np_ln_q(critic, obs, act):
         for layer in range(n):
             x = x @ params[f"w{layer}"] + params[f"b{layer}"]
             if layer < n - 1:
-                x = (x - x.mean(-1, keepdims=True)) / np.sqrt(x.var(-1, keepdims=True) + 1e-5)
-                x = np.maximum(x * params[f"g{layer}"] + params[f"h{layer}"], 0.0)
+                x = np.maximum(x, 0.0)
+                x = (x - x.mean(-1, keepdims=True)) / np.sqrt(x.var(-1, keepdims=True) + 1e-6)
+                x = x * params[f"g{layer}"] + params[f"h{layer}"]
         out.append(x[:, 0])
     return np.stack(out)
 
@@ -115,14 +117,14 @@ def test_critic_loss_matches_hand_computation(batch):
 
 
 def _ln_mlp(params, x):
-    """One member's network in JAX, written out (LayerNorm before each hidden ReLU)."""
+    """One member's network in JAX, written out (LayerNorm after each hidden ReLU)."""
     n = sum(name.startswith("w") for name in params)
     for layer in range(n):
         x = x @ params[f"w{layer}"] + params[f"b{layer}"]
         if layer < n - 1:
-            mean, var = x.mean(-1, keepdims=True), x.var(-1, keepdims=True)
-            x = (x - mean) / jnp.sqrt(var + 1e-5) * params[f"g{layer}"] + params[f"h{layer}"]
             x = jax.nn.relu(x)
+            mean, var = x.mean(-1, keepdims=True), x.var(-1, keepdims=True)
+            x = (x - mean) / jnp.sqrt(var + 1e-6) * params[f"g{layer}"] + params[f"h{layer}"]
     return x
 
 
@@ -247,7 +249,7 @@ def test_rebrac_trains_with_batch_1024_unless_the_user_sets_one():
     assert trainer.TrainConfig(algo="rebrac", batch_size=64).batch_size == 64
 
 
-def test_next_actions_follow_the_episode():
+def test_next_actions_follow_the_episode_and_rows_without_one_are_dropped():
     """Rows 0-2 one episode ending at a time limit, rows 3-4 one ending at a terminal, row 5 an
     episode that the data cuts off."""
     obs = np.arange(9, dtype=np.float32)[:, None]
@@ -263,9 +265,26 @@ def test_next_actions_follow_the_episode():
     np.testing.assert_allclose(got, [0.1, 0.2, 0.2, 0.4, 0.4, 0.5])
     plain = device_data(dataset, Normalizer.identity(1))
     assert type(plain) is Batch, "other algorithms' batches are unchanged"
+    np.testing.assert_array_equal(plain.actions, actions)
+    # ReBRAC's batches: the time-limit end (row 2) and the cut-off row (5) have no next action
+    # in the data and are left out, as the authors' code (D4RL's qlearning_dataset) leaves them;
+    # row 1 keeps row 2's action as its next one; the terminal (4) needs none and stays.
+    np.testing.assert_array_equal(next_action_known(dataset), [1, 1, 0, 1, 1, 0])
     data = device_data(dataset, Normalizer.identity(1), next_actions=True)
-    np.testing.assert_allclose(data.next_actions[:, 0], got)
-    np.testing.assert_array_equal(data.actions, plain.actions)
+    np.testing.assert_allclose(data.actions[:, 0], [0.0, 0.1, 0.3, 0.4])
+    np.testing.assert_allclose(data.next_actions[:, 0], [0.1, 0.2, 0.4, 0.4])
+    np.testing.assert_allclose(data.observations[:, 0], [0, 1, 4, 5])
+    np.testing.assert_allclose(data.next_observations[:, 0], [1, 2, 5, 6])
+    np.testing.assert_array_equal(data.dones, [0, 0, 0, 1])
+
+
+def test_data_without_any_next_action_is_refused():
+    dataset = Dataset(
+        np.zeros((2, 1)), np.zeros((2, 1)), np.zeros(2), np.ones((2, 1)),
+        terminals=[0, 0], timeouts=[1, 1], name="all-cut",
+    )  # fmt: skip
+    with pytest.raises(DatasetError, match="all-cut: no transition has the data's next action"):
+        device_data(dataset, Normalizer.identity(1), next_actions=True)
 
 
 def test_rebrac_learns_on_pendulum(tmp_path, pendulum_dataset):

@@ -75,7 +75,13 @@ class Algorithm:
     Table 2's 256, ReBRAC's 1024."""
     next_actions: bool = False
     """Its batches carry the data's action at s' (:class:`~eabc.agents.common.BatchWithNextActions`,
-    e.g. ReBRAC's critic penalty); others get a plain :class:`~eabc.agents.common.Batch`."""
+    e.g. ReBRAC's critic penalty), and it trains on the transitions that have one only (a
+    time-limit end has none: :func:`eabc.training.chunks.next_action_known`); others get a plain
+    :class:`~eabc.agents.common.Batch` of every transition."""
+    normalize_observations: bool = True
+    """Train and act on ``(s - mean) / (std + 1e-3)`` of the dataset's states (TD3+BC's
+    normaliser); False: on the raw states (the normaliser is the identity, mean 0 and std 1, so
+    evaluation, export and checkpoints work alike), as ReBRAC's authors train."""
     delayed_period: Callable[[Any], int] | None = None
     """``delayed_period(config)``, for an update with a delayed part that runs on the steps ``t``
     with ``t % period == 0`` (the TD3 family's actor and targets: :mod:`eabc.agents.td3_core`).

@@ -14,29 +14,35 @@ One call of :func:`update` is one gradient step on a mini-batch ``(s, a, r, s', 
    its alpha folded into beta_1, on the minimum of the critics where TD3+BC uses critic 1 only;
 5. then the actor and critic targets move by Polyak averaging.
 
-Sources: the paper's eqs. (3)-(4) and Tables 10-11; where the paper leaves a detail open
-(sums over action dimensions, which Q lambda normalises, the order of the updates), CORL's
-``algorithms/offline/rebrac.py`` (the authors' code, from their tinkoff-ai/ReBRAC). Where we
-differ from them:
+Sources: the paper's eqs. (3)-(4) and Tables 10-11; for what the paper leaves open (sums over
+action dimensions, which Q lambda normalises, the order of the updates, the networks' details)
+the authors' code, tinkoff-ai/ReBRAC's ``src/algorithms/rebrac.py`` and ``src/networks.py``, the
+same as CORL's ``algorithms/offline/rebrac.py``. As they run it:
 
-- Table 11's betas, not CORL's configs, where the two differ (see ``BC_WEIGHTS``);
-- observations are normalised as in TD3+BC (every algorithm here trains on the trainer's
-  normalised states); the paper and CORL train on raw states, which the paper reports makes
-  little difference;
-- each critic LayerNorm sits between a hidden layer's product and its ReLU (``networks``, shared
-  with EABC's LayerNorm variant); CORL's comes after the ReLU;
-- networks start from PyTorch's default initialisation (as TD3+BC's); CORL starts the hidden
-  biases at 0.1 and the output layers uniform in +-1e-3 (actor) and +-3e-3 (critics), as EDAC;
-- the smoothing noise and its clip scale with max_action, as in TD3+BC (CORL's assume 1, the
-  D4RL tasks' max_action, where the two agree);
-- ``a'_data`` at a time-limit end, where the data has no next action, is the row's own action
-  (CORL drops those transitions: at most one in 1,000 of a D4RL Gym-MuJoCo dataset);
-- the actor steps on gradient steps 2, 4, ... (CORL's on 1, 3, ...).
+- the betas of Table 11 (``BC_WEIGHTS``), which for hopper-medium are also the authors' released
+  ``configs/rebrac/hopper/hopper_medium.yaml`` (beta_2 0.001; CORL's config has 0.01);
+- raw observations (``normalize_states: false`` in every config): the trainer's normaliser is the
+  identity (the contract's ``normalize_observations``);
+- each critic hidden layer is Dense, ReLU, then LayerNorm (Flax's, epsilon 1e-6); no LayerNorm in
+  the actor (``actor_ln: false``);
+- EDAC's initialisation: PyTorch's uniform weights, hidden biases 0.1, output layers uniform in
+  +-1e-3 (actor) and +-3e-3 (critics);
+- only the transitions whose next action the data has: a time-limit end, where the data has none,
+  is left out (:func:`eabc.training.chunks.device_data`), as D4RL's ``qlearning_dataset`` does.
+
+Where we still differ (docs/algorithms.md, "ReBRAC"):
+
+- the smoothing noise and its clip scale with max_action, as in TD3+BC (the authors' assume 1,
+  the D4RL tasks' max_action, where the two agree);
+- the actor steps on gradient steps 2, 4, ... (the authors' on 1, 3, ...): the TD3 family's one
+  schedule (TD3's and TD3+BC's code); the two orders give as many actor steps, each on critics
+  one step apart, and a chunk's program stays the shared one.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from typing import Literal
 
 import jax
 import jax.numpy as jnp
@@ -78,7 +84,13 @@ class ReBRACConfig:
     """Hidden layer widths of actor and critics (Table 10: 3 layers of 256)."""
     critic_layer_norm: bool = True
     """LayerNorm in every hidden layer of the critics (the paper's; the actor has none, as in
-    the paper and in every CORL config, actor_ln false)."""
+    the paper and in every config of the authors', actor_ln false)."""
+    layer_norm_placement: Literal["after-relu", "before-relu"] = "after-relu"
+    """Where each critic LayerNorm sits: after the hidden layer's ReLU (the authors' code, Flax's
+    epsilon 1e-6) or before it (eabc-ln's and SEEM's, epsilon 1e-5)."""
+    initialisation: Literal["edac", "pytorch"] = "edac"
+    """edac: the authors' (EDAC's), hidden biases 0.1 and output layers uniform in +-1e-3 (actor)
+    and +-3e-3 (critics); pytorch: PyTorch's default for every layer, as TD3+BC's."""
     normalize_q: bool = True
     """lambda = 1 / mean|Q| in the actor's loss (TD3+BC's normalisation); False: lambda = 1."""
 
@@ -94,9 +106,12 @@ class ReBRACConfig:
 PRESETS = {"rebrac": ReBRACConfig()}
 
 # Table 11 of the paper: (beta_1 actor, beta_2 critic) per (environment, dataset kind). CORL's
-# configs agree except for two critic weights, where we follow the paper (as the authors' own
-# repository does for hopper-medium): hopper-medium 0.001 (CORL 0.01) and hopper-expert 0.001
-# (CORL 0.1).
+# configs agree but for two critic weights, hopper-medium 0.001 (CORL 0.01) and hopper-expert
+# 0.001 (CORL 0.1): we follow the paper, and for hopper-medium the authors' released config
+# (tinkoff-ai/ReBRAC configs/rebrac/hopper/hopper_medium.yaml: 0.01, 0.001). Their repository's
+# other Gym-MuJoCo configs, as stored, disagree with both the paper and CORL and hold learning
+# rates no run of Table 10 used (walker2d_expert's critic 0.5, walker2d_random's actor 0.1), so
+# they are not what the paper's results came from (docs/algorithms.md, "ReBRAC").
 BC_WEIGHTS: dict[tuple[str, str], tuple[float, float]] = {
     ("halfcheetah", "random"): (0.001, 0.1),
     ("halfcheetah", "medium"): (0.001, 0.01),
@@ -120,8 +135,19 @@ ReBRACState = td3_core.TD3State
 """TD3's networks, optimisers and step count: ReBRAC adds no state of its own."""
 
 
+EDAC_INIT = {"hidden_bias": 0.1, "actor_output_bound": 1e-3, "critic_output_bound": 3e-3}
+"""The authors' initialisation (EDAC's), beyond PyTorch's uniform weights: ``td3_core.init``'s."""
+
+
 def init(key: jax.Array, obs_dim: int, act_dim: int, config: ReBRACConfig) -> ReBRACState:
-    return td3_core.init(key, obs_dim, act_dim, config)
+    scheme = EDAC_INIT if config.initialisation == "edac" else {}
+    return td3_core.init(key, obs_dim, act_dim, config, **scheme)
+
+
+def _q(critic, obs, action, config: ReBRACConfig) -> jax.Array:
+    """Every critic's Q: ``[K, B]``, its LayerNorms where ``layer_norm_placement`` puts them."""
+    after_relu = config.layer_norm_placement == "after-relu"
+    return networks.critic_apply(critic, obs, action, norm_after_relu=after_relu)
 
 
 def _weights(config: ReBRACConfig) -> tuple[float, float]:
@@ -138,10 +164,10 @@ def critic_loss(critic, critic_target, actor_target, batch: BatchWithNextActions
     _, critic_bc_weight = _weights(config)
     next_action = td3_core.target_action(actor_target, batch, key, config, max_action)
     penalty = ((next_action - batch.next_actions) ** 2).sum(axis=-1)
-    target_q = networks.critic_apply(critic_target, batch.next_observations, next_action)
+    target_q = _q(critic_target, batch.next_observations, next_action, config)
     next_value = target_q.min(axis=0) - critic_bc_weight * penalty
     y = jax.lax.stop_gradient(batch.rewards + config.discount * (1.0 - batch.dones) * next_value)
-    q = networks.critic_apply(critic, batch.observations, batch.actions)
+    q = _q(critic, batch.observations, batch.actions, config)
     loss = ((q - y[None]) ** 2).mean(axis=1).sum()
     return loss, {
         "critic_loss": loss,
@@ -155,7 +181,7 @@ def critic_loss(critic, critic_target, actor_target, batch: BatchWithNextActions
 def actor_loss(actor, critic, batch: BatchWithNextActions, config, max_action):
     actor_bc_weight, _ = _weights(config)
     pi = networks.actor_apply(actor, batch.observations, max_action)
-    value = networks.critic_apply(critic, batch.observations, pi).min(axis=0)
+    value = _q(critic, batch.observations, pi, config).min(axis=0)
     lam = jax.lax.stop_gradient(1.0 / jnp.abs(value).mean()) if config.normalize_q else 1.0
     bc = ((pi - batch.actions) ** 2).sum(axis=-1)
     loss = (actor_bc_weight * bc - lam * value).mean()
@@ -212,6 +238,7 @@ def resolve(config: ReBRACConfig, dataset_name: str, steps: int | None, given: f
 ALGORITHMS = (
     Algorithm("rebrac", "ReBRAC", PRESETS["rebrac"], init, update, resolve=resolve,
               delayed_period=td3_core.delayed_period,
-              batch_size=1024, next_actions=True, column=12.5,
-              step_metrics=CRITIC_METRICS | {"critic_bc_penalty"}, steps_per_s=82.0),
+              batch_size=1024, next_actions=True, normalize_observations=False, column=12.5,
+              step_metrics=CRITIC_METRICS | {"critic_bc_penalty"}, steps_per_s=82.0,
+              state_layout=2),  # 2: raw observations, LayerNorm after the ReLU
 )  # fmt: skip

@@ -17,33 +17,55 @@ import numpy as np
 
 from eabc.agents.common import Batch, BatchWithNextActions
 from eabc.agents.contract import CRITIC_METRICS
-from eabc.data.dataset import Dataset, Normalizer
+from eabc.data.dataset import Dataset, DatasetError, Normalizer
 
 
 def device_data(dataset: Dataset, normalizer: Normalizer, next_actions: bool = False) -> Batch:
-    """The whole dataset as one device-resident batch (observations normalised once, up front),
-    with the data's next actions (:func:`data_next_actions`) where ``next_actions`` asks."""
+    """The whole dataset as one device-resident batch (observations normalised once, up front).
+    Where ``next_actions`` asks, with the data's next actions (:func:`data_next_actions`), and
+    only the transitions that have one (:func:`next_action_known`), as ReBRAC's authors train."""
+    rows = next_action_known(dataset) if next_actions else slice(None)
     fields = {
-        "observations": jnp.asarray(normalizer(dataset.observations)),
-        "actions": jnp.asarray(dataset.actions),
-        "rewards": jnp.asarray(dataset.rewards),
-        "next_observations": jnp.asarray(normalizer(dataset.next_observations)),
-        "dones": jnp.asarray(dataset.terminals, jnp.float32),
+        "observations": jnp.asarray(normalizer(dataset.observations[rows])),
+        "actions": jnp.asarray(dataset.actions[rows]),
+        "rewards": jnp.asarray(dataset.rewards[rows]),
+        "next_observations": jnp.asarray(normalizer(dataset.next_observations[rows])),
+        "dones": jnp.asarray(dataset.terminals[rows], jnp.float32),
     }
     if next_actions:
-        return BatchWithNextActions(**fields, next_actions=jnp.asarray(data_next_actions(dataset)))
+        if not fields["rewards"].shape[0]:
+            raise DatasetError(
+                f"{dataset.name}: no transition has the data's next action (every one ends its "
+                "episode at a time limit, or the next row does not start at its s')"
+            )
+        next_ = data_next_actions(dataset)[rows]
+        return BatchWithNextActions(**fields, next_actions=jnp.asarray(next_))
     return Batch(**fields)
+
+
+def _continues(dataset: Dataset) -> np.ndarray:
+    """Rows 0 .. n-2 that the next row continues: no terminal or time limit ends them, and the
+    next row's observation is their s'."""
+    ends = dataset.terminals | dataset.timeouts
+    return ~ends[:-1] & np.all(dataset.observations[1:] == dataset.next_observations[:-1], 1)
 
 
 def data_next_actions(dataset: Dataset) -> np.ndarray:
     """The action the data took at each transition's s': the next row's, where that row continues
-    the episode (the transition ends by neither a terminal nor a time limit, and the next row's
-    observation is its s'); elsewhere the row's own action (the data has no other)."""
-    ends = dataset.terminals | dataset.timeouts
-    continues = ~ends[:-1] & np.all(dataset.observations[1:] == dataset.next_observations[:-1], 1)
+    the episode (:func:`_continues`); elsewhere the row's own action (the data has no other)."""
+    continues = _continues(dataset)
     out = dataset.actions.copy()
     out[:-1][continues] = dataset.actions[1:][continues]
     return out
+
+
+def next_action_known(dataset: Dataset) -> np.ndarray:
+    """Rows whose next action the data has (the next row continues them) or that need none (a
+    terminal: its target does not bootstrap). The others end at a time limit or where the data
+    stops; D4RL's ``qlearning_dataset``, which ReBRAC's authors train on, drops them too."""
+    known = dataset.terminals.copy()
+    known[:-1] |= _continues(dataset)
+    return known
 
 
 FAST_COMPILE_ENV = "EABC_FAST_COMPILE"

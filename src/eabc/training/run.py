@@ -568,7 +568,11 @@ def _build(run_dir, config, agent_config, dataset, state, saved=None) -> Run:
     if saved is not None:  # what the export and load_policy will scale the actions by
         run_config.check_max_action(saved, run_dir / CONFIG, evaluator.env)
     algorithm = get_algorithm(config.algo)
-    normalizer = Normalizer.fit(dataset.observations)
+    normalizer = (
+        Normalizer.fit(dataset.observations)
+        if algorithm.normalize_observations
+        else Normalizer.identity(dataset.obs_dim)
+    )
     init_key, loop_key = _keys(config.seed)
     fresh = {
         "agent": _init_agent(
