@@ -3,12 +3,18 @@
     python benchmarks/algorithms.py                     # every algorithm, hopper-sized data
     python benchmarks/algorithms.py --algos eabc td3bc  # a subset
     python benchmarks/algorithms.py --seeds 5           # also: 5 EABC seeds vmapped vs per core
+    python benchmarks/algorithms.py --paired eabc eabc-ln --rounds 9  # the second's cost over the first's
 
 Each figure is the median of ``--repeats`` compiled chunks of ``--steps`` gradient steps (the
 algorithm's batch: 256, ReBRAC's 1024) on a 1M-transition dataset with hopper's shapes (11-d
 observations, 3-d actions) resident in device memory, the same ``train_chunk`` the trainer runs.
 MOPO and MOReL are timed with an untrained dynamics model (its rollouts cost the same; fitting it,
 once per run, is not included).
+
+``--paired A B`` times what B costs over A on a busy machine: one single-threaded process pinned to
+one core compiles both, then runs their chunks in turn (A B, B A, A B, ...) for ``--rounds``
+rounds, so that whatever else the machine does slows both alike; it prints each one's median
+ms/step (wall-clock and the process's CPU time) and the median of the rounds' B / A ratios.
 """
 
 from __future__ import annotations
@@ -79,6 +85,81 @@ def measure(algo: str, steps: int, repeats: int, seeds: int = 1) -> list[float]:
     return rates
 
 
+def paired(algos: tuple[str, str], steps: int, rounds: int) -> dict[str, list[float]]:
+    """Seconds per chunk of each algorithm, wall-clock and CPU, their chunks alternating:
+    ``{"A_wall": [...], "A_cpu": [...], "B_wall": ..., "B_cpu": ...}``."""
+    import jax
+
+    from eabc.agents import get_algorithm
+    from eabc.agents.common import BatchWithNextActions
+    from eabc.training.chunks import train_chunk
+
+    runs = {}
+    for algo in algos:
+        algorithm = get_algorithm(algo)
+        data = fake_data(OBS_DIM, ACT_DIM)
+        if algorithm.next_actions:
+            data = BatchWithNextActions(**vars(data), next_actions=data.actions[::-1])
+        state, update, period = agent(algo)
+        run = [state, jax.random.PRNGKey(1), data, update, algorithm.batch_size, period]
+        run[:2] = train_chunk(state, run[1], data, update, run[4], steps, period, 0)[:2]
+        jax.block_until_ready(run[0])  # compiled and warm
+        runs[algo] = run
+    times: dict[str, list[float]] = {f"{a}_{c}": [] for a in algos for c in ("wall", "cpu")}
+    for round_ in range(rounds):
+        for algo in algos if round_ % 2 == 0 else algos[::-1]:
+            state, key, data, update, batch_size, period = runs[algo]
+            done = int(state.step)
+            wall, cpu = time.perf_counter(), time.process_time()
+            state, key, metrics = train_chunk(
+                state, key, data, update, batch_size, steps, period, done
+            )
+            jax.block_until_ready((state, metrics))
+            times[f"{algo}_wall"].append(time.perf_counter() - wall)
+            times[f"{algo}_cpu"].append(time.process_time() - cpu)
+            runs[algo][:2] = state, key
+    return times
+
+
+def paired_lines(algos: tuple[str, str], steps: int, rounds: int) -> list[str]:
+    """The ``--paired`` report: the worker pinned to the last core, one thread."""
+    from speed import single_thread_env
+
+    first, second = algos
+    core = sorted(os.sched_getaffinity(0))[-1]
+    command = [sys.executable, __file__, "--paired-worker", first, second, str(steps), str(rounds)]
+    out = subprocess.run(
+        ["taskset", "-c", str(core), *command],
+        env=single_thread_env(core),
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    times = json.loads(out.strip().splitlines()[-1])
+    lines = [
+        f"one single-threaded process pinned to core {core}, hopper shapes, chunks of {steps} "
+        f"steps, {rounds} rounds alternating {first} and {second}; medians",
+        "",
+        "| algorithm | ms/step (wall) | ms/step (CPU) | steps/s (CPU) |",
+        "|---|---:|---:|---:|",
+    ]
+    for algo in algos:
+        wall = 1e3 * statistics.median(times[f"{algo}_wall"]) / steps
+        cpu = 1e3 * statistics.median(times[f"{algo}_cpu"]) / steps
+        lines.append(f"| {algo} | {wall:.2f} | {cpu:.2f} | {1e3 / cpu:.1f} |")
+    ratios = {
+        c: [b / a for a, b in zip(times[f"{first}_{c}"], times[f"{second}_{c}"])]
+        for c in ("wall", "cpu")
+    }
+    lines += [
+        "",
+        f"{second} / {first}: {statistics.median(ratios['cpu']):.3f} in CPU time, "
+        f"{statistics.median(ratios['wall']):.3f} wall-clock (medians of the {rounds} rounds' "
+        f"ratios; CPU-time ratios {min(ratios['cpu']):.3f}-{max(ratios['cpu']):.3f})",
+    ]
+    return lines
+
+
 def per_core(algo: str, steps: int, repeats: int) -> list[float]:
     """One single-threaded process per core, side by side: each one's median steps/s."""
     from eabc.experiments.sweep import SINGLE_THREAD
@@ -116,11 +197,27 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=500, help="steps per timed chunk")
     parser.add_argument("--repeats", type=int, default=3, help="timed chunks (median)")
     parser.add_argument("--seeds", type=int, default=0, help="also compare layouts for N seeds")
+    parser.add_argument(
+        "--paired", nargs=2, metavar=("A", "B"), help="B's cost over A's, chunks alternating"
+    )
+    parser.add_argument("--rounds", type=int, default=9, help="--paired: chunks of each")
     parser.add_argument("--worker", nargs=3, help=argparse.SUPPRESS)
+    parser.add_argument("--paired-worker", nargs=4, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.worker:
         algo, steps, repeats = args.worker
         print(json.dumps(measure(algo, int(steps), int(repeats))))
+        return
+    if args.paired_worker:
+        first, second, steps, rounds = args.paired_worker
+        print(json.dumps(paired((first, second), int(steps), int(rounds))))
+        return
+    if args.paired:
+        import machine  # benchmarks/machine.py, beside this file
+
+        print(machine.host_line())
+        for line in paired_lines(tuple(args.paired), args.steps, args.rounds):
+            print(line, flush=True)
         return
 
     import jax

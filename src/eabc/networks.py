@@ -75,18 +75,23 @@ FLAX_LAYER_NORM_EPS = 1e-6
 
 
 def _layer_norm_stats(h: jax.Array, eps: float = LAYER_NORM_EPS) -> tuple[jax.Array, jax.Array]:
-    """Row sums and ``1 / sqrt(var + eps)`` over the last axis; the variance in two passes,
-    ``mean((h - mean)^2)``, exact for inputs with a large common offset."""
+    """Row means and ``1 / sqrt(var + eps)`` over the last axis, in one pass: the sums of ``d``
+    and ``d^2`` for ``d = h - h[..., :1]``, each row shifted by its first entry. The shift takes a
+    common offset out before any square (the textbook one-pass ``E[h^2] - E[h]^2`` loses all
+    digits to a large one), and no entry lies more than ``sqrt(width)`` standard deviations from
+    its row's mean, so ``mean(d^2) - mean(d)^2`` loses at most ``log10(width)`` digits of the
+    variance. Two passes (the mean, then the squares about it) read ``h`` once more, and made an
+    eabc-ln step about 5% slower on CPU (docs/speed.md)."""
     width = h.shape[-1]
-    total = h.sum(axis=-1, keepdims=True)
-    # (h * width - total) = width * (h - mean): the same centring as _normalised's, written apart
-    # so that XLA keeps each inside its own fusion instead of storing one shared h-sized array.
-    var = jnp.square(h * width - total).sum(axis=-1, keepdims=True) / width**3
-    return total, jax.lax.rsqrt(var + eps)
+    shift = h[..., :1]
+    d = h - shift
+    mean_d = d.sum(axis=-1, keepdims=True) / width
+    var = jnp.maximum(jnp.square(d).sum(axis=-1, keepdims=True) / width - jnp.square(mean_d), 0.0)
+    return shift + mean_d, jax.lax.rsqrt(var + eps)
 
 
-def _normalised(h: jax.Array, total: jax.Array, rstd: jax.Array) -> jax.Array:
-    return (h - total / h.shape[-1]) * rstd
+def _normalised(h: jax.Array, mean: jax.Array, rstd: jax.Array) -> jax.Array:
+    return (h - mean) * rstd
 
 
 @jax.custom_vjp
@@ -98,13 +103,13 @@ def layer_norm_relu(h: jax.Array, scale: jax.Array, offset: jax.Array) -> jax.Ar
     turns the automatic one into some 20 passes over ``h``-sized arrays; this one takes about 8
     (``docs/speed.md``).
     """
-    total, rstd = _layer_norm_stats(h)
-    return jax.nn.relu(_normalised(h, total, rstd) * scale + offset)
+    mean, rstd = _layer_norm_stats(h)
+    return jax.nn.relu(_normalised(h, mean, rstd) * scale + offset)
 
 
 def _layer_norm_relu_fwd(h, scale, offset):
-    total, rstd = _layer_norm_stats(h)
-    xhat = _normalised(h, total, rstd)
+    mean, rstd = _layer_norm_stats(h)
+    xhat = _normalised(h, mean, rstd)
     y = jax.nn.relu(xhat * scale + offset)
     return y, (xhat, y, rstd, scale)
 
@@ -143,14 +148,14 @@ def relu_layer_norm(h: jax.Array, scale: jax.Array, offset: jax.Array) -> jax.Ar
     axis: ReBRAC's authors' hidden layer (Dense, ReLU, LayerNorm), with a hand-written gradient
     as :func:`layer_norm_relu`'s. Shapes as there."""
     x = jax.nn.relu(h)
-    total, rstd = _layer_norm_stats(x, FLAX_LAYER_NORM_EPS)
-    return _normalised(x, total, rstd) * scale + offset
+    mean, rstd = _layer_norm_stats(x, FLAX_LAYER_NORM_EPS)
+    return _normalised(x, mean, rstd) * scale + offset
 
 
 def _relu_layer_norm_fwd(h, scale, offset):
     x = jax.nn.relu(h)
-    total, rstd = _layer_norm_stats(x, FLAX_LAYER_NORM_EPS)
-    xhat = _normalised(x, total, rstd)
+    mean, rstd = _layer_norm_stats(x, FLAX_LAYER_NORM_EPS)
+    xhat = _normalised(x, mean, rstd)
     return xhat * scale + offset, (xhat, h, rstd, scale)
 
 
