@@ -4,6 +4,7 @@ name the command, readable metavars, errors that name the user's flag, one-line 
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 
@@ -36,6 +37,53 @@ def test_usage_names_the_command_and_metavars_read_plainly(argv, usage, capsys):
     assert sys.executable not in text and "{None}" not in text
     if argv[0] == "data":
         assert "NAME" in text.splitlines()[0]  # the positional, not STR
+
+
+def _cut_help_lines(text: str) -> list[str]:
+    """Lines of ``--help`` (printed wide, in boxes or plain) whose text stops well short of the
+    width and goes on in the next, indented line: a paragraph cut mid-sentence. A flag too long
+    to have its help beside it (``--set [STR [STR ...]]``) is no cut."""
+    rows = [line.strip("│").rstrip() for line in text.splitlines()]
+    cut = []
+    for row, after in zip(rows, rows[1:]):
+        words = row.strip()
+        if words.startswith(("-", "•")):  # a flag or subcommand, its help after two spaces
+            words = re.split(r"\s{2,}", words, maxsplit=1)[1:]
+            words = words[0] if words else ""
+        goes_on = len(after) - len(after.lstrip()) > 4 and after.strip()
+        if words and set(words) - set("-─") and goes_on and len(row) < 300:
+            cut.append(f"{row.strip()} / {after.strip()}")
+    return cut
+
+
+def test_help_paragraphs_are_not_cut_mid_sentence(capsys, monkeypatch):
+    """Before: tyro kept the line break before every indented docstring line, so `eabc train
+    --help` read "...with the settings it was" / "started with (other options than ... refused:
+    they" / "would be ignored)", and `eabc --help` broke `sac` and `study` the same way."""
+    monkeypatch.setenv("COLUMNS", "400")
+    every = [[]] + [[name] for name in cli.COMMANDS]
+    every += [[group, name] for group, (commands, _) in cli.GROUPS.items() for name in commands]
+    for argv in every:
+        with pytest.raises(SystemExit):
+            main([*argv, "--help"])
+        cut = _cut_help_lines(capsys.readouterr().out)
+        assert not cut, (argv, cut)
+
+
+def test_the_cut_line_check_can_fail():
+    box = "│ --resume STR  Continue the run, with the settings it was   │\n│               started with. │"
+    assert _cut_help_lines(box) and _cut_help_lines(box.replace("│", " "))
+    long_flag = "│ --set [STR [STR ...]]   │\n│               Any other setting. │"
+    assert not _cut_help_lines(long_flag)
+
+
+def test_eabc_study_without_a_spec_is_refused(tmp_path, monkeypatch):
+    """Before: `eabc study` alone trained nothing, wrote an empty study-out and exited 0."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exit_:
+        main(["study"])
+    assert str(exit_.value.code).startswith("error: eabc study: no SPEC given")  # exit code 1
+    assert not list(tmp_path.iterdir())
 
 
 def test_an_interval_mismatch_names_the_flags(capsys):

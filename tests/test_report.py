@@ -583,6 +583,20 @@ def test_eabc_results_shows_a_missing_value_as_a_dash(tmp_path, capsys):
     assert capsys.readouterr().out.splitlines()[1].endswith(",")  # CSV: empty, machine-readable
 
 
+def test_eabc_results_says_what_final_score_averages(tmp_path, capsys):
+    """Before: a run of 5 evaluations showed the mean of all 5 as its final score, beside runs
+    of the last 10, without a word (the report says it; `eabc results` did not)."""
+    root = tmp_path / "root"
+    _run_directory(root, "td3bc", [500.0, 700.0])
+    capsys.readouterr()
+    main(["results", str(root)])
+    note = capsys.readouterr().out.splitlines()[-1]
+    assert note == (
+        "final_score: the mean of a run's last 10 evaluations; of all of them where it has "
+        "fewer (td3bc: 2)"
+    ), note
+
+
 def test_report_tables_show_a_missing_value_as_a_dash(results):
     runs, _ = results
     table = tables.stability_table(runs.assign(q_mean_max=np.nan))

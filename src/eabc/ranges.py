@@ -102,11 +102,11 @@ def within(value, hint) -> bool:
 
 
 def _unwrapped(hint):
-    """``hint`` without an outer ``Annotated`` around an optional type (a command line's help
-    settings on ``Positive | None``): the range is the inner type's."""
+    """``hint`` without an outer ``Annotated`` around an optional or tuple type (a command line's
+    help settings on ``Positive | None`` or ``tuple[Seed, ...]``): the range is the inner type's."""
     while typing.get_origin(hint) is Annotated:
         inner = typing.get_args(hint)[0]
-        if typing.get_origin(inner) not in (typing.Union, types.UnionType):
+        if typing.get_origin(inner) not in (typing.Union, types.UnionType, tuple):
             break
         hint = inner
     return hint

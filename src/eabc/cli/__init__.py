@@ -132,8 +132,8 @@ GROUPS: dict[str, tuple[dict[str, type], str]] = {
 
 
 def _subcommands(commands: dict[str, type]):
-    """``commands`` as tyro's subcommands, each described by its first docstring line, and a
-    group (``data``, ``zoo``) by its own text, not by the command class standing for it."""
+    """``commands`` as tyro's subcommands, each described by its docstring, and a group
+    (``data``, ``zoo``) by its own text, not by the command class standing for it."""
     groups = {name: text for name, (_, text) in GROUPS.items()} if commands is COMMANDS else {}
     return Union[  # noqa: UP007 (built from a tuple, which X | Y cannot take)
         tuple(

@@ -339,6 +339,26 @@ def run_results(cmd: Results) -> None:
         print(table.to_csv(index=False), end="")
     else:
         print(shown(table).to_string(index=False))
+        if "final_score" in cmd.columns:
+            print(final_score_note(runs, evaluations))
+
+
+def final_score_note(runs, evaluations) -> str:
+    """What ``final_score`` averages, naming the runs with fewer evaluations than that."""
+    from eabc.training.run import FINAL_EVALUATIONS  # noqa: PLC0415
+
+    counts = evaluations.groupby("run_id").size() if len(evaluations) else {}
+    fewer = {
+        run_id: int(counts.get(run_id, 0))
+        for run_id in runs["run_id"]
+        if 0 < counts.get(run_id, 0) < FINAL_EVALUATIONS
+    }
+    note = f"final_score: the mean of a run's last {FINAL_EVALUATIONS} evaluations"
+    if not fewer:
+        return note
+    named = ", ".join(f"{run_id}: {n}" for run_id, n in list(fewer.items())[:5])
+    more = f" and {len(fewer) - 5} more" if len(fewer) > 5 else ""
+    return f"{note}; of all of them where it has fewer ({named}{more})"
 
 
 def shown(table):

@@ -46,17 +46,31 @@ def _checked(options, config_class: type):
 
 def quiet_unset_defaults(cls: type) -> type:
     """``cls`` (a command's dataclass, and the dataclasses in its fields) without tyro's
-    ``(default: None)`` after an option whose default is None: its help says what unset means
-    (``default runs/DATASET_ALGO_seedS``, ``Unset: the preset's``), and None cannot be typed."""
+    ``(default: None)`` after an option whose default is None (its help says what unset means:
+    ``default runs/DATASET_ALGO_seedS``, ``Unset: the preset's``; None cannot be typed) or
+    ``(default: )`` after an empty list, and its docstrings' paragraphs each on one line (tyro
+    1.0 keeps the line break before every indented docstring line: help cut mid-sentence)."""
+    from eabc.agents.contract import field_docs  # noqa: PLC0415
+
+    if cls.__doc__:
+        paragraphs = re.split(r"\n\s*\n", cls.__doc__.strip())
+        cls.__doc__ = "\n\n".join(" ".join(paragraph.split()) for paragraph in paragraphs)
     hints = typing.get_type_hints(cls, include_extras=True)
     own = dict(cls.__dict__.get("__annotations__", {}))
+    docs = field_docs(cls)
     for field in dataclasses.fields(cls):
         hint = hints[field.name]
         inner = typing.get_args(hint)[0] if typing.get_origin(hint) is Annotated else hint
         if dataclasses.is_dataclass(inner):
             quiet_unset_defaults(inner)
-        elif field.default is None:
-            own[field.name] = Annotated[hint, tyro.conf.arg(help_behavior_hint="")]
+            continue
+        default = field.default
+        if field.default_factory is not dataclasses.MISSING:
+            default = field.default_factory()
+        empty = default is None or (isinstance(default, list | tuple) and not default)
+        marks = {"help": docs.get(field.name), "help_behavior_hint": "" if empty else None}
+        if any(value is not None for value in marks.values()):
+            own[field.name] = Annotated[hint, tyro.conf.arg(**marks)]
     cls.__annotations__ = own
     return cls
 

@@ -33,7 +33,11 @@ class Study:
     `--include OUT` skips them.
     """
 
-    specs: Annotated[tuple[str, ...], tyro.conf.Positional, tyro.conf.arg(metavar="SPEC")]
+    specs: Annotated[
+        tuple[str, ...],
+        tyro.conf.Positional,
+        tyro.conf.arg(metavar="SPEC", help_behavior_hint="(one or more)"),
+    ]
     """Sweep specs (YAML: datasets, algos or variants, seeds, steps, train): the queue, in their
     order and each spec's own (dataset by dataset, a group of seeds per algorithm or variant)."""
     out: str = "study-out"
@@ -67,6 +71,11 @@ def run_study(cmd: Study) -> None:
     from eabc.experiments import results, study, sweep  # noqa: PLC0415
     from eabc.experiments.spec import expand, load_spec  # noqa: PLC0415
 
+    if not cmd.specs:  # tyro takes none; a study of nothing would write an empty --out
+        raise ValueError(
+            "eabc study: no SPEC given; name at least one sweep spec (YAML), e.g. "
+            "eabc study docs/results/study-1m/1-hopper-halfcheetah.yaml --within 45m"
+        )
     out = study.check_out(cmd.out)
     size, runs = None, []
     cache = tempfile.mkdtemp(prefix="eabc-study-smoke-") if cmd.smoke else None
