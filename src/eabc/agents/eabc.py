@@ -18,7 +18,8 @@ setting at its default the rule is exactly that (published EABC). The settings b
 variants the study screened (docs/results/screen/README.md), each a switch of this one rule:
 
 - ``critic_layer_norm``: LayerNorm before every hidden ReLU of the critics (SEEM, Yue et al. 2023;
-  ReBRAC, Tarasov et al. 2023), which bounds how fast a critic can extrapolate;
+  ReBRAC, Tarasov et al. 2023, puts it after the ReLU), which bounds how fast a critic can
+  extrapolate;
 - ``pessimism_beta``: ``mean - beta * std`` instead of ``mean - std``;
 - ``independent_targets``: member ``i`` regresses on its own target ``r + gamma (1 - d) Q_targ_i``
   (MSG, Ghasemipour et al. 2022), so the members stay diverse off the data and the actor's
@@ -87,7 +88,8 @@ class EABCConfig:
     hidden_dims: tuple[int, ...] = (256, 256)
     """Hidden layer widths of actor and critics."""
     critic_layer_norm: bool = False
-    """LayerNorm before each hidden ReLU of the critics (SEEM; ReBRAC). Not in the paper."""
+    """LayerNorm before each hidden ReLU of the critics (SEEM's order; ReBRAC's authors put it
+    after). Not in the paper."""
     pessimism_beta: float = 1.0
     """beta of ``mean - beta * std`` (pessimism mean-std); the paper's is 1."""
     independent_targets: bool = False
