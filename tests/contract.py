@@ -76,7 +76,7 @@ def _check_contract(tmp_path, pendulum_dataset, algo: str) -> None:
     assert runs[0].agent_config == algorithm.resolved(
         runs[0].agent_config, pendulum_dataset.name, config.steps, set(overrides)
     ), "resolving twice changes nothing"
-    summaries = trainer.train_seeds(runs, progress=False)  # one vmapped, scanned program
+    summaries = trainer.train_runs(runs, progress=False)  # one vmapped, scanned program
     for run, summary in zip(runs, summaries):
         assert int(run.state["agent"].step) == 10 and summary["steps"] == 10
         assert summary.get("diverged_step") is None

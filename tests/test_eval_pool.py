@@ -92,8 +92,8 @@ def test_a_run_killed_while_its_evaluations_are_out_resumes_to_the_same_end(
 def test_seeds_trained_together_share_one_pool(tmp_path, pendulum_dataset, pool):
     here = [start(tmp_path, f"here{s}", pendulum_dataset, seed=s, steps=300) for s in (0, 1)]
     there = [start(tmp_path, f"there{s}", pendulum_dataset, seed=s, steps=300) for s in (0, 1)]
-    expected = trainer.train_seeds(here, progress=False)
-    got = trainer.train_seeds(there, progress=False, eval_workers=pool)
+    expected = trainer.train_runs(here, progress=False)
+    got = trainer.train_runs(there, progress=False, eval_workers=pool)
     for a, b, x, y in zip(here, there, expected, got, strict=True):
         assert results(b.run_dir, y) == results(a.run_dir, x)
     assert expected[0]["final_return"] != expected[1]["final_return"]

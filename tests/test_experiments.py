@@ -44,7 +44,7 @@ def test_seed_vmapped_training_equals_training_the_seeds_one_by_one(tmp_path, pe
         return trainer.start(config, tmp_path / name, AGENT, dataset=pendulum_dataset)
 
     together = [start(f"vmap{s}", s) for s in (0, 1, 2)]
-    summaries = trainer.train_seeds(together, progress=False)
+    summaries = trainer.train_runs(together, progress=False)
     for seed, run, summary in zip((0, 1, 2), together, summaries):
         alone = start(f"alone{seed}", seed)
         expected = trainer.train(alone, progress=False)

@@ -24,8 +24,9 @@ SCRIPT = ROOT / "benchmarks" / "study.sh"
 
 def test_the_device_script_smoke_run_streams_finished_runs_that_report_reads(tmp_path):
     """The very script a lent GPU runs, at toy sizes on this CPU: the queue's first two groups
-    (two seeds each) train, and OUT holds exactly the study's files, its runs done and read
-    back by `eabc report --include`; a second study given --include OUT trains nothing."""
+    (two seeds each; each group one program over the slices' three hopper datasets) train, and
+    OUT holds exactly the study's files, its runs done and read back by `eabc report
+    --include`; a second study given --include OUT trains nothing."""
     out = tmp_path / "out"
     env = {**os.environ, "OUT": str(out), "EABC_FAST_COMPILE": "1", "TMPDIR": str(tmp_path)}
     done = subprocess.run(
@@ -34,14 +35,18 @@ def test_the_device_script_smoke_run_streams_finished_runs_that_report_reads(tmp
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
     assert sorted(p.name for p in out.iterdir()) == sorted(study.OUT_FILES)
     runs, evaluations = results.read_archive(out)
-    assert sorted(runs["run_id"]) == [
-        f"runs/hopper-medium__{algo}__seed{seed}" for algo in ("eabc", "td3bc") for seed in (0, 1)
-    ]
+    hoppers = ("hopper-medium", "hopper-medium-replay", "hopper-random")
+    assert sorted(runs["run_id"]) == sorted(
+        f"runs/{data}__{algo}__seed{seed}"
+        for algo in ("eabc", "td3bc")
+        for data in hoppers
+        for seed in (0, 1)
+    )
     assert (runs["status"] == "done").all() and (runs["steps"] == 40).all()
-    assert len(evaluations) == 4 * 2  # every 20 of 40 steps
+    assert len(evaluations) == 12 * 2  # every 20 of 40 steps
     logs = pd.read_csv(out / "logs.csv")
-    assert list(logs.columns[:2]) == ["run_id", "step"] and len(logs) == 4 * 2
-    assert "training hopper-medium td3bc seeds 0,1" in (out / "study.log").read_text()
+    assert list(logs.columns[:2]) == ["run_id", "step"] and len(logs) == 12 * 2
+    assert "training hopper-medium__td3bc+2 (6 runs)" in (out / "study.log").read_text()
     again = tmp_path / "again"
     spec = sorted((ROOT / "docs" / "results" / "study-1m").glob("[0-9]*.yaml"))[0]
     argv = ["study", str(spec), "--smoke", "--out", str(again), "--root", str(tmp_path / "r2")]
@@ -50,7 +55,7 @@ def test_the_device_script_smoke_run_streams_finished_runs_that_report_reads(tmp
 
 
 def _queue(tmp_path):
-    spec = {"datasets": ["hopper-medium", "walker2d-medium", "hopper-random"],
+    spec = {"datasets": ["hopper-medium", "walker2d-medium", "halfcheetah-medium"],
             "algos": ["td3bc"], "seeds": [0], "steps": 1000}  # fmt: skip
     return expand(spec)
 
@@ -59,7 +64,7 @@ def test_a_group_starts_only_if_its_scaled_estimate_ends_before_the_deadline(tmp
     """The first group starts whatever its estimate; it took at least a fifth of its estimate,
     so the next ones are scaled by that: one of 1000 s (200 s or more) does not fit a 30 s
     budget, one of 1 s does, and the queue goes on past the one it skipped."""
-    estimates = {"hopper-medium": 1.0, "walker2d-medium": 1000.0, "hopper-random": 1.0}
+    estimates = {"hopper-medium": 1.0, "walker2d-medium": 1000.0, "halfcheetah-medium": 1.0}
     monkeypatch.setattr(sweep, "estimate_seconds", lambda run, done=0: estimates[run.dataset])
     trained = []
 
@@ -72,8 +77,8 @@ def test_a_group_starts_only_if_its_scaled_estimate_ends_before_the_deadline(tmp
     report = study.run_study(
         _queue(tmp_path), tmp_path / "root", tmp_path / "out", time.time() + 30, echo=lambda _: None
     )
-    assert trained == ["hopper-medium", "hopper-random"]
-    assert report["skipped"] == ["walker2d-medium td3bc seeds 0"]
+    assert trained == ["hopper-medium", "halfcheetah-medium"]
+    assert report["skipped"] == ["walker2d-medium__td3bc__seed0 (1 run)"]
     log = (tmp_path / "out" / "study.log").read_text()
     assert re.search(r"not started, ~\d+ s would end past the deadline: walker2d-medium", log)
 
@@ -88,8 +93,11 @@ def test_a_failed_group_is_named_and_the_queue_goes_on(tmp_path, monkeypatch):
     report = study.run_study(
         _queue(tmp_path), tmp_path / "root", tmp_path / "out", echo=lambda _: None
     )
-    assert report["failed"] == {"walker2d-medium td3bc seeds 0": "no memory for it"}
-    assert report["finished"] == ["hopper-medium__td3bc__seed0", "hopper-random__td3bc__seed0"]
+    assert report["failed"] == {"walker2d-medium__td3bc__seed0 (1 run)": "no memory for it"}
+    assert report["finished"] == [
+        "hopper-medium__td3bc__seed0",
+        "halfcheetah-medium__td3bc__seed0",
+    ]
 
 
 def test_out_must_be_empty_or_a_studys(tmp_path):

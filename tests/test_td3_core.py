@@ -271,7 +271,7 @@ def test_the_trainer_cuts_chunks_anywhere_and_equals_the_step_by_step_loop(
         for s in (0, 1)
     ]  # fmt: skip
     starts = [(run.state["agent"], run.state["key"]) for run in runs]
-    trainer.train_seeds(runs, progress=False)
+    trainer.train_runs(runs, progress=False)
     first = runs[0]
     data = chunks.device_data(first.dataset, first.normalizer)
     for run, (state, key) in zip(runs, starts):

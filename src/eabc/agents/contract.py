@@ -87,6 +87,10 @@ class Algorithm:
     with ``t % period == 0`` (the TD3 family's actor and targets: :mod:`eabc.agents.td3_core`).
     Its ``update`` then takes ``delayed`` (a Python bool, whether this step runs that part), and
     the training chunks pass it: a fixed schedule, so that their compiled program has no branch."""
+    traced_settings: tuple[str, ...] = ()
+    """Numeric settings that ``update`` only computes with, never branches on: runs that differ
+    in them (and in seed and dataset) train as one compiled program, each run's values traced
+    (:func:`eabc.training.chunks.train_chunk_runs`; e.g. EABC's p and alpha)."""
     step_metrics: frozenset[str] = CRITIC_METRICS
     """Metrics averaged over every step of a chunk (see :data:`CRITIC_METRICS`)."""
     steps_per_s: float = 60.0

@@ -405,6 +405,9 @@ _FAMILY = {
     "delayed_period": td3_core.delayed_period,
     "report_settings": ("num_critics", "confidence_level", "pessimism"),
     "cli_flags": ("confidence_level", "num_critics", "pessimism", "alpha"),
+    # Used only as numbers in the losses (a Bernoulli probability, lambda's numerator, mean -
+    # beta * std): the datasets of one environment, with Table 3's p each, train as one program.
+    "traced_settings": ("confidence_level", "alpha", "pessimism_beta"),
 }
 # steps/s: the reference host's (eabc.timing), by benchmarks/algorithms.py, hopper shapes.
 ALGORITHMS = (

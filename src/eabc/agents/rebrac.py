@@ -238,6 +238,7 @@ def resolve(config: ReBRACConfig, dataset_name: str, steps: int | None, given: f
 ALGORITHMS = (
     Algorithm("rebrac", "ReBRAC", PRESETS["rebrac"], init, update, resolve=resolve,
               delayed_period=td3_core.delayed_period,
+              traced_settings=("actor_bc_weight", "critic_bc_weight"),
               batch_size=1024, next_actions=True, normalize_observations=False, column=12.5,
               step_metrics=CRITIC_METRICS | {"critic_bc_penalty"}, steps_per_s=82.0,
               state_layout=2),  # 2: raw observations, LayerNorm after the ReLU

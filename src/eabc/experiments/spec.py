@@ -441,8 +441,33 @@ def _fields(algo: str) -> set[str]:
 
 
 def groups(runs: list[RunSpec]) -> list[list[RunSpec]]:
-    """Runs that differ only in their seed, together."""
-    out: dict[str, list[RunSpec]] = {}
+    """Runs that can train as one compiled program (:func:`eabc.training.trainer.train_runs`),
+    together, in the order of their first run: the same algorithm, training settings and
+    algorithm settings but for its ``traced_settings``, on datasets of one shape (the built-in
+    datasets of one environment; any other dataset only with itself). Runs that differ only in
+    their seed are always in one group."""
+    out: dict[tuple, list[RunSpec]] = {}
     for run in runs:
-        out.setdefault(run.group_id, []).append(run)
+        traced = get_algorithm(run.algo).traced_settings
+        fixed = tuple((k, v) for k, v in run.overrides if k not in traced)
+        out.setdefault((run.algo, shape_family(run.dataset), fixed, run.train), []).append(run)
     return list(out.values())
+
+
+def job_name(job: list[RunSpec]) -> str:
+    """A job's name in logs: its run's id, its seed group's (``hopper-medium__eabc``), or the
+    first group's and how many more it trains (``hopper-medium__eabc+2``)."""
+    if len(job) == 1:
+        return job[0].run_id
+    more = len(dict.fromkeys(run.group_id for run in job)) - 1
+    return job[0].group_id + (f"+{more}" if more else "")
+
+
+def shape_family(dataset: str) -> str:
+    """A name that datasets whose observations and actions have one shape share: a built-in
+    dataset's environment (``hopper`` for hopper-medium and hopper-random, ``antmaze`` for every
+    maze); any other dataset's own name."""
+    from eabc.data import generate, tasks  # noqa: PLC0415
+
+    task = tasks.parse_task(dataset) if dataset in generate.builtin_names() else None
+    return task[0] if task is not None else f"dataset {dataset}"

@@ -1,10 +1,11 @@
 """The study engine: a queue of runs trained against a time budget on one accelerator.
 
 A lent GPU machine gives minutes, not hours, and returns only a few small files. So the queue is
-trained in one process: each group of runs that differ only in their seed is one compiled program
-(the seeds ``vmap``-ped, :func:`eabc.training.trainer.train_seeds`), groups one after another, so
-one program holds the accelerator's memory at a time (XLA's pre-allocation is turned off by the
-command). The built-in datasets the queue names are made by a pool of processes while the first
+trained in one process: each group of runs that share their networks' shapes (seeds, datasets of
+one environment, values of the algorithm's traced settings: :func:`eabc.experiments.spec.groups`)
+is one compiled program (``vmap``-ped, :func:`eabc.training.trainer.train_runs`), the groups one
+after another, so one program holds the accelerator's memory at a time (XLA's pre-allocation is
+turned off by the command). The built-in datasets the queue names are made by a pool of processes while the first
 groups train. A group starts only if its estimate ends before the deadline; the estimates are the
 contract's reference-host hints scaled by how long the groups trained so far took against theirs.
 After every finished group, everything the queue has finished is written to ``OUT`` in
@@ -27,7 +28,7 @@ import pandas as pd
 from eabc import paths
 from eabc.data import generate
 from eabc.experiments import results, sweep
-from eabc.experiments.spec import RunSpec
+from eabc.experiments.spec import RunSpec, job_name
 from eabc.training import eval_pool
 from eabc.training.checkpoint import atomic_write
 
@@ -105,8 +106,8 @@ def start_datasets(
     at once for those already made) and the thread's executor."""
     futures: dict[str, concurrent.futures.Future] = {}
     pool = None
-    for job in job_list:
-        config = job[0].train_config()
+    for run in (run for job in job_list for run in job):
+        config = run.train_config()
         name = config.dataset
         if name in futures or name not in generate.builtin_names():
             continue
@@ -157,16 +158,16 @@ def run_study(
     report: dict[str, Any] = {"finished": [], "skipped": [], "failed": {}, "exported": 0}
     try:
         for job in job_list:
-            label = f"{job[0].dataset} {job[0].algo}{job[0].variant and ' ' + job[0].variant}"
-            label += f" seeds {','.join(str(r.seed) for r in job)}"
+            label = f"{job_name(job)} ({len(job)} run{'s' * (len(job) > 1)})"
             base = max(sweep.estimate_seconds(r, sweep.status(r, root)[1]) for r in job)
             guess = base * _scale(took, job[0].algo)
             if deadline is not None and took and time.time() + guess > deadline:
                 log(f"not started, ~{guess:.0f} s would end past the deadline: {label}")
                 report["skipped"].append(label)
                 continue
-            if job[0].dataset in futures:
-                futures[job[0].dataset].result()  # its dataset, made meanwhile
+            for name in dict.fromkeys(run.dataset for run in job):
+                if name in futures:
+                    futures[name].result()  # its datasets, made meanwhile
             log(f"training {label} (~{guess:.0f} s by the estimates so far)")
             started = time.time()
             try:

@@ -26,7 +26,7 @@ from typing import Any
 from eabc import compile_cache, paths, timing
 from eabc.agents import get_algorithm
 from eabc.data import generate
-from eabc.experiments.spec import RunSpec, differences, groups, is_path
+from eabc.experiments.spec import RunSpec, differences, groups, is_path, job_name
 from eabc.training import trainer
 from eabc.training.trainer import SUMMARY
 
@@ -237,9 +237,10 @@ def jobs(runs: list[RunSpec], root: Path, layout: str) -> list[list[RunSpec]]:
 
 
 def execute(job: list[dict], root: str, eval_workers: Any = 0) -> list[dict]:
-    """Run one job in this process: start or resume each run, then train (seeds vmapped);
-    ``eval_workers``: evaluation processes, or an evaluation pool shared with other jobs
-    (``eabc.training.eval_pool``; 0 evaluates in this process)."""
+    """Run one job in this process: start or resume each run, then train them as one program
+    (:func:`eabc.training.trainer.train_runs`); ``eval_workers``: evaluation processes, or an
+    evaluation pool shared with other jobs (``eabc.training.eval_pool``; 0 evaluates in this
+    process)."""
     from eabc.data.sources import load_dataset  # noqa: PLC0415
     from eabc.training import checkpoint, trainer  # noqa: PLC0415
 
@@ -247,9 +248,12 @@ def execute(job: list[dict], root: str, eval_workers: Any = 0) -> list[dict]:
     specs = [RunSpec.from_json(j) for j in job]
     first = specs[0].train_config()
     compile_cache.enable(cache_root=first.cache_dir)  # a sweep's runs share their shapes
-    dataset = load_dataset(first.dataset, first.cache_dir)  # one copy for the whole seed group
+    loaded = {}  # one copy of each dataset for the whole group
     runs = []
     for spec in specs:
+        if spec.dataset not in loaded:
+            loaded[spec.dataset] = load_dataset(spec.dataset, first.cache_dir)
+        dataset = loaded[spec.dataset]
         run_dir = root_path / RUNS / spec.run_id
         state, _, why = _status(spec, root_path)
         if state in ("changed", "broken"):
@@ -265,7 +269,7 @@ def execute(job: list[dict], root: str, eval_workers: Any = 0) -> list[dict]:
     # Progress as lines in the job's log (ROOT/logs/NAME.log): its start with the estimate, one
     # a minute, its end.
     summaries = (
-        trainer.train_seeds(runs, progress=True, eval_workers=eval_workers)
+        trainer.train_runs(runs, progress=True, eval_workers=eval_workers)
         if len(runs) > 1
         else [trainer.train(runs[0], progress=True, eval_workers=eval_workers)]
     )
@@ -399,7 +403,7 @@ def run_local(
                     index = next_job(pending, costs, time.time(), deadline)
                     index = len(pending) if index is None else index
                     for job in pending[:index]:  # they would not finish before the deadline
-                        left_out.append(job[0].group_id if len(job) > 1 else job[0].run_id)
+                        left_out.append(job_name(job))
                     del pending[:index]
                     if not pending:
                         break
@@ -412,7 +416,7 @@ def run_local(
                     job = [run for run in job if not reasons[run.run_id]]
                     if not job:
                         continue
-                name = job[0].group_id if len(job) > 1 else job[0].run_id
+                name = job_name(job)
                 payload = json.dumps([r.to_json() for r in job])
                 cmd = [sys.executable, "-m", "eabc.experiments.worker", str(root), payload]
                 out = None
@@ -436,7 +440,7 @@ def run_local(
                 active.remove((proc, job, out))
                 out.close()
                 ended += 1
-                name = job[0].group_id if len(job) > 1 else job[0].run_id
+                name = job_name(job)
                 if proc.returncode:
                     failures.append(name)
                     log(
@@ -504,7 +508,7 @@ def run_ray(
     while futures:
         done, _ = ray.wait(list(futures), num_returns=1)
         job = futures.pop(done[0])
-        name = job[0].group_id if len(job) > 1 else job[0].run_id
+        name = job_name(job)
         try:
             ray.get(done[0])
             log(f"finished {name}")

@@ -8,6 +8,7 @@ benchmarks time them directly.
 
 from __future__ import annotations
 
+import copy
 import functools
 import os
 
@@ -96,11 +97,20 @@ def _chunk(
 ):  # fmt: skip
     size = data.rewards.shape[0]
 
+    def sample(key):
+        index = jax.random.randint(key, (batch_size,), 0, size)
+        return jax.tree.map(lambda x: x[index], data)
+
+    return _steps(agent_state, key, sample, update, length, unroll, period, phase)
+
+
+def _steps(agent_state, key, sample, update, length: int, unroll: int, period, phase: int):
+    """``length`` steps of ``update`` on mini-batches ``sample(key)`` draws."""
+
     def step(carry, delayed: bool | None = None):
         agent_state, key = carry
         key, sample_key, update_key = jax.random.split(key, 3)
-        index = jax.random.randint(sample_key, (batch_size,), 0, size)
-        batch = jax.tree.map(lambda x: x[index], data)
+        batch = sample(sample_key)
         kwargs = {} if delayed is None else {"delayed": delayed}
         agent_state, metrics = update(agent_state, batch, update_key, **kwargs)
         return (agent_state, key), metrics
@@ -156,6 +166,33 @@ def _chunk_seeds(
     return jax.vmap(chunk, in_axes=(0, 0, None))(agent_states, keys, data)
 
 
+def _chunk_runs(
+    agent_states, keys, datas: Batch, which, sizes, values: dict, update, batch_size: int,
+    length: int, unroll: int, period: int | None = None, phase: int = 0,
+):  # fmt: skip
+    def one(agent_state, key, which, size, values):
+        def sample(key):  # the run's own dataset: its first ``size`` rows of ``datas[which]``
+            index = jax.random.randint(key, (batch_size,), 0, size)
+            return jax.tree.map(lambda x: x[which, index], datas)
+
+        run_update = update
+        if values:
+            config = with_settings(update.keywords["config"], values)
+            run_update = functools.partial(update, config=config)
+        return _steps(agent_state, key, sample, run_update, length, unroll, period, phase)
+
+    return jax.vmap(one)(agent_states, keys, which, sizes, values)
+
+
+def with_settings(config, values: dict):
+    """``config`` with the fields ``values`` names set to those (traced) values. The dataclass's
+    own checks do not run again: they ran on every run's concrete settings."""
+    new = copy.copy(config)
+    for name, value in values.items():
+        object.__setattr__(new, name, value)
+    return new
+
+
 _PROGRAMS = {
     fast: tuple(
         jax.jit(
@@ -163,7 +200,7 @@ _PROGRAMS = {
             static_argnames=_STATIC,
             **({"compiler_options": FAST_COMPILE_OPTIONS} if fast else {}),
         )
-        for f in (_chunk, _chunk_seeds)
+        for f in (_chunk, _chunk_seeds, _chunk_runs)
     )
     for fast in (False, True)
 }
@@ -195,6 +232,38 @@ def train_chunk_seeds(
     return _PROGRAMS[fast][1](
         agent_states, keys, data, update=update, batch_size=batch_size, length=length,
         unroll=1 if fast else 2, period=period, phase=start % period if period else 0,
+    )  # fmt: skip
+
+
+def stack_data(datas: list[Batch]) -> Batch:
+    """Device datasets of one shape but any lengths as one ``[datasets, longest, ...]`` batch
+    for :func:`train_chunk_runs`, the shorter ones padded with zeros (never sampled)."""
+    longest = max(data.rewards.shape[0] for data in datas)
+
+    def stack(*xs):
+        return jnp.stack(
+            [jnp.pad(x, [(0, longest - x.shape[0])] + [(0, 0)] * (x.ndim - 1)) for x in xs]
+        )
+
+    return jax.tree.map(stack, *datas)
+
+
+def train_chunk_runs(
+    agent_states, keys, datas: Batch, which, sizes, values: dict, update, batch_size: int,
+    length: int, period: int | None = None, start: int = 0,
+):  # fmt: skip
+    """:func:`train_chunk` for runs that share their networks' shapes, one program over a run
+    axis (the leading axis of states, keys, ``which``, ``sizes`` and each of ``values``): run
+    ``i`` samples the first ``sizes[i]`` rows of dataset ``which[i]`` of ``datas``
+    (:func:`stack_data`), and trains with ``update``'s config but for the settings ``values``
+    holds, numbers traced per run (the algorithm's ``traced_settings``). Every run is at step
+    ``start``; each equals the same run trained alone to float tolerance."""
+    fast = fast_compile()
+    return _PROGRAMS[fast][2](
+        agent_states, keys, datas, jnp.asarray(which, jnp.int32), jnp.asarray(sizes, jnp.int32),
+        {name: jnp.asarray(v, jnp.float32) for name, v in values.items()}, update=update,
+        batch_size=batch_size, length=length, unroll=1 if fast else 2, period=period,
+        phase=start % period if period else 0,
     )  # fmt: skip
 
 

@@ -6,7 +6,7 @@ weights and the observation normaliser as NumPy arrays, the evaluation's environ
 and trains on. A worker runs the episodes side by side in a batch of environments with one policy
 call per step (:class:`eabc.evaluation.Evaluator`, ``vectorised=True``): the same returns as the
 episodes run one by one in the training process. Workers are spawned, single-threaded and import
-neither JAX nor the trainer; one pool serves any number of runs (the seeds of ``train_seeds``, or
+neither JAX nor the trainer; one pool serves any number of runs (the seeds of ``train_runs``, or
 the runs of one program after another).
 
 A run's log rows and checkpoints wait in its :class:`InOrder` queue until the evaluations up to

@@ -1,7 +1,7 @@
 """The offline training loop: compiled chunks of gradient steps between evaluations.
 
 A run is started (:func:`start`) or resumed (:func:`resume`) into a :class:`Run`
-(:mod:`eabc.training.run`, re-exported here); :func:`train` and :func:`train_seeds` advance it in
+(:mod:`eabc.training.run`, re-exported here); :func:`train` and :func:`train_runs` advance it in
 compiled chunks (:mod:`eabc.training.chunks`), and between chunks log, evaluate every
 ``eval_interval`` steps, check the run's health (:mod:`eabc.training.health`) and checkpoint every
 ``checkpoint_interval`` steps, so that ``resume`` continues bit for bit.
@@ -24,7 +24,13 @@ from eabc import timing
 from eabc.evaluation import Policy
 from eabc.progress import bar as progress_bar
 from eabc.training import checkpoint, eval_pool, provenance
-from eabc.training.chunks import device_data, summarize_metrics, train_chunk, train_chunk_seeds
+from eabc.training.chunks import (
+    device_data,
+    stack_data,
+    summarize_metrics,
+    train_chunk,
+    train_chunk_runs,
+)
 from eabc.training.health import (
     divergence_warning,
     first_divergence,
@@ -107,18 +113,22 @@ def train(
     run: Run, progress: bool = True, eval_workers: int | eval_pool.EvaluationPool = 0
 ) -> dict[str, Any]:
     """Train ``run`` to ``config.steps`` from wherever it is; returns the summary."""
-    return train_seeds([run], progress, eval_workers)[0]
+    return train_runs([run], progress, eval_workers)[0]
 
 
-def train_seeds(
+def train_runs(
     runs: list[Run], progress: bool = True, eval_workers: int | eval_pool.EvaluationPool = 0
 ) -> list[dict[str, Any]]:
-    """Train runs that differ only in their seed together, vectorised over the seeds.
+    """Train runs that share their networks' shapes together, as one program over a run axis.
 
-    One compiled chunk advances every seed (``vmap`` of the scanned update); then every run logs,
-    evaluates and checkpoints into its own directory exactly as if trained alone, so each can be
-    resumed or reported on its own. Runs that are not at the same step are trained one by one.
-    Each run's writer lock is released when this returns or fails.
+    The runs may differ in their seed, their dataset (of one observation and action size) and
+    the algorithm's ``traced_settings`` (numbers its update only computes with, such as EABC's p
+    and alpha); everything else must be the same (:func:`one_program_values` says what is not).
+    One compiled chunk advances every run (``vmap`` of the scanned update, each run sampling its
+    own dataset with its own key); then every run logs, evaluates and checkpoints into its own
+    directory exactly as if trained alone, so each can be resumed or reported on its own. Runs
+    that are not at the same step are trained one by one. Each run's writer lock is released
+    when this returns or fails.
 
     ``eval_workers`` > 0 evaluates in that many processes while training goes on
     (:mod:`eabc.training.eval_pool`), or in a given pool (one pool for many calls); the files
@@ -133,7 +143,7 @@ def train_seeds(
     try:
         for run in runs:  # who trains it from here, where, with what code (provenance.json)
             provenance.record(run.run_dir, run.step)
-        summaries = _train_seeds(runs, progress, pool)
+        summaries = _train_together(runs, progress, pool)
         finished = True
         return summaries
     finally:
@@ -144,18 +154,28 @@ def train_seeds(
                 run.lock.release()
 
 
-def _train_seeds(
+def _train_together(
     runs: list[Run], progress: bool, pool: eval_pool.EvaluationPool | None = None
 ) -> list[dict[str, Any]]:
     first = runs[0]
-    _check_same_setting(runs)
+    values = one_program_values(runs)
     if len({run.step for run in runs}) > 1:
-        return [_train_seeds([run], progress, pool)[0] for run in runs]
+        return [_train_together([run], progress, pool)[0] for run in runs]
     config = first.config
-    dataset = first.dataset
-    dataset = prepared(first.algorithm, dataset, config.reward_convention)
-    data = device_data(dataset, first.normalizer, first.algorithm.next_actions)
-    q_range = value_range(dataset.rewards, getattr(first.agent_config, "discount", None))
+    slots: dict[tuple, int] = {}  # each dataset (with its normaliser) once on the device
+    datas, rewards, which, q_ranges = [], [], [], []
+    for run in runs:
+        slot = (id(run.dataset), run.normalizer.mean.tobytes(), run.normalizer.std.tobytes())
+        if slot not in slots:
+            slots[slot] = len(datas)
+            dataset = prepared(run.algorithm, run.dataset, config.reward_convention)
+            datas.append(device_data(dataset, run.normalizer, run.algorithm.next_actions))
+            rewards.append(dataset.rewards)
+        which.append(slots[slot])
+        discount = getattr(run.agent_config, "discount", None)
+        q_ranges.append(value_range(rewards[which[-1]], discount))
+    sizes = [int(datas[i].rewards.shape[0]) for i in which]
+    data = datas[0] if len(runs) == 1 else stack_data(datas)
     update = functools.partial(
         first.algorithm.update, config=first.agent_config, max_action=first.max_action
     )
@@ -163,12 +183,14 @@ def _train_seeds(
     period = delayed(first.agent_config) if delayed else None
     loggers = [RunLogger(run.run_dir, resume_step=run.step) for run in runs]
     writers = [
-        functools.partial(_write, run, logger, q_range) for run, logger in zip(runs, loggers)
+        functools.partial(_write, run, logger, q_range)
+        for run, logger, q_range in zip(runs, loggers, q_ranges)
     ]
     # With a pool, each run's rows and checkpoints wait for the evaluations before them.
     queues = [eval_pool.InOrder(write) for write in writers] if pool is not None else None
-    seeds = ",".join(str(run.config.seed) for run in runs)
-    desc = f"{config.algo} {first.dataset.name}" + (f" seeds {seeds}" if len(runs) > 1 else "")
+    desc = f"{config.algo} {', '.join(dict.fromkeys(run.dataset.name for run in runs))}"
+    if len(runs) > 1:
+        desc += f" seeds {','.join(str(run.config.seed) for run in runs)}"
     bar = progress_bar(
         config.steps,
         f"training {desc}",
@@ -195,10 +217,13 @@ def _train_seeds(
                 outputs = [(agent, key, metrics)]
             else:
                 stack = lambda *xs: jnp.stack(xs)
-                agents, keys, metrics = train_chunk_seeds(
+                agents, keys, metrics = train_chunk_runs(
                     jax.tree.map(stack, *[run.state["agent"] for run in runs]),
                     jnp.stack([run.state["key"] for run in runs]),
                     data,
+                    which,
+                    sizes,
+                    values,
                     update,
                     config.batch_size,
                     length,
@@ -213,7 +238,7 @@ def _train_seeds(
             seconds = time.perf_counter() - started
             rows = []
             for i, (run, output) in enumerate(zip(runs, outputs)):
-                rows.append(_after_chunk(run, *output, length, seconds, q_range))
+                rows.append(_after_chunk(run, *output, length, seconds, q_ranges[i]))
                 evaluation = state = None
                 if run.diverged_step is None and run.config.evaluates(run.step):
                     if pool is None:
@@ -243,9 +268,9 @@ def _train_seeds(
     healthy = [run for run in runs if run.diverged_step is None]
     rest = {}  # the other seeds of a group, when one of them stopped on NaN/inf
     if len(healthy) < len(runs) and healthy and healthy[0].step < config.steps:
-        rest = dict(zip(map(id, healthy), _train_seeds(healthy, progress, pool)))
+        rest = dict(zip(map(id, healthy), _train_together(healthy, progress, pool)))
     summaries = []
-    for run, logger in zip(runs, loggers):
+    for run, logger, q_range in zip(runs, loggers, q_ranges):
         if id(run) in rest:
             summaries.append(rest[id(run)])
             continue
@@ -258,19 +283,47 @@ def _train_seeds(
     return summaries
 
 
-def _check_same_setting(runs: list[Run]) -> None:
+def one_program_values(runs: list[Run]) -> dict[str, list[float]]:
+    """The settings in which ``runs`` differ, a value per run, where they may train as one
+    program (:func:`train_runs`): the algorithm's ``traced_settings`` that are not the same in
+    every run. Raises ValueError where the runs differ in anything but those, their seed and
+    their dataset, or their datasets in shape."""
     first = runs[0]
+    traced = first.algorithm.traced_settings
+    values = {
+        name: [getattr(run.agent_config, name) for run in runs]
+        for name in traced
+        if len({getattr(run.agent_config, name) for run in runs}) > 1
+    }
     for run in runs[1:]:
-        same = (
-            run.config == dataclasses.replace(first.config, seed=run.config.seed)
-            and run.agent_config == first.agent_config
-            and run.dataset.size == first.dataset.size
-        )
-        if not same:
-            raise ValueError(
-                f"{run.run_dir} differs from {first.run_dir} in more than its seed; "
-                "only seeds of one setting train together"
+        common = {name: getattr(first.agent_config, name) for name in values}
+        why = [
+            what
+            for what, differs in (
+                ("settings", run.config
+                 != dataclasses.replace(first.config, seed=run.config.seed,
+                                        dataset=run.config.dataset)),
+                ("algorithm settings", dataclasses.replace(run.agent_config, **common)
+                 != first.agent_config),
+                ("observation or action size", (run.dataset.obs_dim, run.dataset.act_dim)
+                 != (first.dataset.obs_dim, first.dataset.act_dim)),
+                ("max_action", run.max_action != first.max_action),
             )
+            if differs
+        ]  # fmt: skip
+        if why:
+            raise ValueError(
+                f"{run.run_dir} differs from {first.run_dir} in its {' and '.join(why)}; only "
+                "runs that differ in their seed, dataset (of one shape) or the algorithm's "
+                f"traced settings ({', '.join(traced) or 'none'}) train as one program"
+            )
+    for name, column in values.items():
+        if not all(isinstance(v, int | float) and not isinstance(v, bool) for v in column):
+            raise ValueError(
+                f"{name} differs between runs ({', '.join(map(str, column))}) but is not a "
+                "number in every one: such runs train as separate programs"
+            )
+    return values
 
 
 def _after_chunk(run: Run, agent, key, metrics, length: int, seconds: float, q_range=None) -> dict:
