@@ -23,6 +23,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -338,15 +339,18 @@ def _eabc(*argv: str, **kwargs) -> subprocess.Popen:
     """``eabc ARGV`` in its own session (a terminal's Ctrl-C reaches its whole group)."""
     env = {**os.environ, "EABC_FAST_COMPILE": "1"}
     # SIGINT as a terminal gives it: a suite started in the background (nohup, a CI runner's
-    # job) has it ignored, and children inherit that, so Python would never see the Ctrl-C.
-    return subprocess.Popen([sys.executable, "-m", "eabc.cli", *argv], env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                            start_new_session=True, preexec_fn=_default_sigint,
-                            **kwargs)  # fmt: skip
-
-
-def _default_sigint() -> None:
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    # job) has it ignored, and children inherit that, so Python would never see the Ctrl-C. A
+    # handled signal is reset to its default in the child, an ignored one stays ignored: so it
+    # is handled here while the child starts (a preexec_fn would do it in the child, but makes
+    # subprocess fork this process, which JAX's threads warn against).
+    assert threading.current_thread() is threading.main_thread()  # where handlers are set
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        return subprocess.Popen([sys.executable, "-m", "eabc.cli", *argv], env=env,
+                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                                start_new_session=True, **kwargs)  # fmt: skip
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def _ctrl_c(proc: subprocess.Popen, ready, timeout: float = 600) -> tuple[int, list[str]]:

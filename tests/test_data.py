@@ -24,6 +24,16 @@ from eabc.data.sources import load_dataset
 from eabc.evaluation import check_spaces, make_env
 from eabc.training.trainer import resolve_agent_config
 
+MINARI_METADATA = {
+    "algorithm_name": "a test's random rows",
+    "author": "eabc's tests",
+    "author_email": "nobody@example.invalid",
+    "code_permalink": "tests/test_data.py",
+    "description": "made by a test",
+    "eval_env": "Pendulum-v1",
+}
+"""What Minari asks of every dataset (it warns about each field left out)."""
+
 
 def small(n=50, obs=3, act=2, seed=0, **kw):
     rng = np.random.default_rng(seed)
@@ -195,6 +205,7 @@ def test_minari_dataset_loads_from_the_local_path(tmp_path, monkeypatch):
         env="Pendulum-v1",
         ref_min_score=-1200.0,
         ref_max_score=-130.0,
+        **MINARI_METADATA,
     )
     data = load_dataset("minari:test/pendulum/tiny-v0")
     assert data.size == 12 and data.env_id == "Pendulum-v1" and data.ref_min_score == -1200.0
@@ -255,7 +266,9 @@ def test_a_dataset_made_with_minaris_data_collector_trains(tmp_path, monkeypatch
         while not done:
             _, _, terminated, truncated, _ = env.step(env.action_space.sample())
             done = terminated or truncated
-    env.create_dataset("test/pendulum/collected-v0", algorithm_name="uniform random")
+    env.create_dataset(
+        "test/pendulum/collected-v0", **{**MINARI_METADATA, "algorithm_name": "uniform random"}
+    )
     env.close()
     run_dir = tmp_path / "run"
     main(

@@ -12,7 +12,6 @@ training code, so that evaluation processes start quickly.
 from __future__ import annotations
 
 import dataclasses
-import warnings
 from collections.abc import Callable
 
 import numpy as np
@@ -79,10 +78,8 @@ def _near_rounding_boundary(exact: np.ndarray, rounded: np.ndarray) -> np.ndarra
 def make_env(env_id: str):
     import gymnasium as gym  # noqa: PLC0415
 
-    warnings.filterwarnings("ignore", message=r".*is out of date", category=DeprecationWarning)
-
     try:
-        return gym.make(env_id)
+        return tasks.make_env(env_id)
     except gym.error.Error as error:
         raise DatasetError(
             f"cannot make evaluation environment {env_id!r} ({error}); pass --env with a Gymnasium id"

@@ -358,8 +358,6 @@ def export_minari(dataset: Dataset, dataset_id: str, overwrite: bool = False) ->
     folder of the Minari path (which its listing skips), renamed into place when complete: an
     export that fails or is killed half way never leaves a folder that Minari lists.
     """
-    import gymnasium as gym  # noqa: PLC0415
-
     check_export_target(dataset_id, overwrite)
     import minari  # noqa: PLC0415
     from minari.data_collector import EpisodeBuffer  # noqa: PLC0415
@@ -382,13 +380,14 @@ def export_minari(dataset: Dataset, dataset_id: str, overwrite: bool = False) ->
                 truncations=~dataset.terminals[lo:hi] & (np.arange(lo, hi) == hi - 1),
             )
         )
-    env = gym.make(dataset.env_id) if dataset.env_id else None
+    env = tasks.make_env(dataset.env_id) if dataset.env_id else None
     root = minari_root()
     root.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(dir=root, prefix=".eabc-export.", suffix=".tmp"))
     try:
-        with _minari_path(staging), warnings.catch_warnings():  # Minari nags about e-mails
-            warnings.simplefilter("ignore", UserWarning)
+        with _minari_path(staging), warnings.catch_warnings():
+            for message in MINARI_UNSET if env else MINARI_UNSET + MINARI_NO_ENV:
+                warnings.filterwarnings("ignore", message, UserWarning, r"minari\.utils")
             _create(minari, dataset, dataset_id, episodes, env)
         _move_into_place(staging, root, dataset_id)
     finally:
@@ -445,12 +444,20 @@ def _move_into_place(staging: Path, root: Path, dataset_id: str) -> None:
     os.replace(staging / dataset_id, target)
 
 
+MINARI_UNSET = (r"`code_permalink` is set to None\.", r"`author_email` is set to None\.")
+"""Minari's warnings about dataset fields an export leaves unset: no link to the code or e-mail
+address is eabc's to give (a made-up one would mislead whoever reads the dataset)."""
+MINARI_NO_ENV = (r"`eval_env` is set to None\.", r"env_spec is None, no environment spec")
+"""Minari's warnings about a dataset without an environment (data that names none)."""
+
+
 def _create(minari, dataset: Dataset, dataset_id: str, episodes: list, env) -> None:
     """Minari's own writer, into the Minari path of the moment."""
     minari.create_dataset_from_buffers(
         dataset_id,
         episodes,
         env=env,
+        eval_env=env,
         algorithm_name="eabc " + dataset.metadata.get("recipe", "dataset"),
         author="eabc",
         ref_min_score=dataset.ref_min_score,

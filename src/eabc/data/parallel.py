@@ -33,14 +33,13 @@ import json
 import multiprocessing
 import os
 import sys
-import warnings
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
 
 from eabc import progress
-from eabc.data import antmaze_collect, zoo
+from eabc.data import antmaze_collect, tasks, zoo
 
 TABLE = Path(__file__).with_name("episode_starts.json")
 """Episode starts of the built-in MuJoCo rollouts (seed 0, the shipped zoo)."""
@@ -72,10 +71,7 @@ class Rollout:
 
 
 def make_env(env_id: str, max_episode_steps: int = 1000):
-    import gymnasium as gym  # noqa: PLC0415
-
-    warnings.filterwarnings("ignore", message=r".*is out of date", category=DeprecationWarning)
-    return gym.make(env_id, max_episode_steps=max_episode_steps)
+    return tasks.make_env(env_id, max_episode_steps=max_episode_steps)
 
 
 def action_fn(policy: str | os.PathLike | None):

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import re
+import warnings
 
 
 @dataclasses.dataclass(frozen=True)
@@ -139,3 +140,24 @@ def default_quantile_level(task: tuple[str, str] | None) -> float | None:
 def normalized_score(episode_return: float, ref_min_score: float, ref_max_score: float) -> float:
     """D4RL's normalised score: 0 is a random policy, 100 an expert."""
     return 100.0 * (episode_return - ref_min_score) / (ref_max_score - ref_min_score)
+
+
+V4_OUT_OF_DATE = r"(\x1b\[\d+m)?WARN: The environment \w+-v4 is out of date\. You should consider upgrading to version `v5`\."
+"""Gymnasium's DeprecationWarning on making a MuJoCo ``-v4`` environment (in yellow ANSI codes)."""
+
+
+def make_env(env_id: str, **kwargs):
+    """``gym.make(env_id, **kwargs)``, the one place eabc makes a Gymnasium environment.
+
+    Gymnasium's warning that ``Hopper-v4`` and the other ``-v4`` tasks are out of date is filtered
+    by its exact message, for good: ``-v4`` is kept on purpose. It is the closest to D4RL's
+    ``-v2`` tasks, whose reference returns normalise every score; ``-v5`` changes what a return
+    is (Hopper's and Walker2d's healthy reward only while healthy), so no score would compare.
+    The filter is added to Python's list rather than set in a ``catch_warnings`` block, which is
+    not safe while another thread makes an environment (``eabc study`` makes datasets in one)."""
+    import gymnasium as gym  # noqa: PLC0415
+
+    warnings.filterwarnings(
+        "ignore", V4_OUT_OF_DATE, DeprecationWarning, r"gymnasium\.envs\.registration"
+    )
+    return gym.make(env_id, **kwargs)

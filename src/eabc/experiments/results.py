@@ -458,7 +458,7 @@ def repeats(
             (other["score"] - first["score"]).abs().max() for other in series[1:] if same_steps
         ]
         identical = same_steps and all(other.equals(first) for other in series[1:])
-        machines = [m for m in copies["machine"].fillna("").astype(str) if m]
+        machines = [m for m in copies["machine"] if isinstance(m, str) and m]  # NaN: not recorded
         found.append({
             "run_id": run_id,
             "steps": int(copies["_steps"].iloc[0]),
