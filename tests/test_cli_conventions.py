@@ -82,7 +82,7 @@ def test_eabc_study_without_a_spec_is_refused(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     with pytest.raises(SystemExit) as exit_:
         main(["study"])
-    assert str(exit_.value.code).startswith("error: eabc study: no SPEC given")  # exit code 1
+    assert str(exit_.value.code).startswith("error: eabc study: no spec given")  # exit code 1
     assert not list(tmp_path.iterdir())
 
 

@@ -160,3 +160,20 @@ def test_d3rlpys_own_minari_reader_would_shift_the_observations(hopper, tmp_path
     np.testing.assert_array_equal(replay.episodes[0].observations, ours.episodes[0].observations)
     np.testing.assert_array_equal(first[1:], second[:-1])  # one row late from the second episode
     np.testing.assert_array_equal(first[0], hopper.next_observations[ours.episodes[0].size() - 1])
+
+
+def test_the_block_docs_datasets_md_shows_runs(tmp_path, monkeypatch):
+    """docs/datasets.md's Python block (d3rlpy's own dataset from ours), on a small dataset of
+    the name it uses."""
+    import re  # noqa: PLC0415
+    from pathlib import Path  # noqa: PLC0415
+
+    from eabc.data import generate  # noqa: PLC0415
+
+    monkeypatch.setenv("EABC_CACHE_DIR", str(tmp_path))
+    generate.make("hopper-medium", generate.dataset_path("hopper-medium", tmp_path), size=2_000)
+    text = (Path(__file__).resolve().parents[1] / "docs" / "datasets.md").read_text()
+    [block] = re.findall(r"(?ms)^```python\n(.*?)^```", text)
+    namespace: dict = {}
+    exec(block, namespace)  # noqa: S102
+    assert namespace["dataset"].transition_count > 0

@@ -5,6 +5,7 @@ algorithm settings, schedule), and README's first command runs for real on a tin
 from __future__ import annotations
 
 import json
+import re
 import shlex
 import sys
 from pathlib import Path
@@ -132,6 +133,44 @@ def test_readme_first_command_runs(tmp_path, monkeypatch):
     [run_dir] = (tmp_path / "runs").iterdir()
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["steps"] == 20 and summary["final_score"] == summary["final_score"]  # not NaN
+
+
+def python_blocks(text: str) -> list[str]:
+    """The fenced ``python`` blocks of a Markdown text (at a line's start: not a fragment set
+    inside a list, as docs/extending.md shows one)."""
+    return re.findall(r"(?ms)^```python\n(.*?)^```", text)
+
+
+README_BUDGET = "steps=50_000"
+"""What README's Python block trains for, replaced here by a tiny budget."""
+
+
+def test_the_python_blocks_run_as_a_reader_would_run_them(tmp_path, monkeypatch):
+    """README's Python block (train, load the policy, act), then README's ONNX export and
+    docs/deploy.md's block on the file it wrote, in one directory as a reader would, on a tiny
+    dataset of the same name. Every Python block of README and docs/ is run: docs/datasets.md's
+    (d3rlpy) by tests/test_d3rlpy.py, in d3rlpy's own environment."""
+    blocks = {doc.relative_to(ROOT).as_posix(): python_blocks(doc.read_text()) for doc in DOCUMENTS}
+    assert {doc for doc, found in blocks.items() if found} == {
+        "README.md", "docs/deploy.md", "docs/datasets.md"
+    }  # fmt: skip
+    monkeypatch.chdir(tmp_path)
+    cache = tmp_path / "cache"
+    monkeypatch.setenv("EABC_CACHE_DIR", str(cache))
+    generate.make("hopper-random", generate.dataset_path("hopper-random", cache), size=2_000)
+    [readme] = blocks["README.md"]
+    assert README_BUDGET in readme
+    tiny = "steps=20, log_interval=10, eval_interval=20, checkpoint_interval=20, eval_episodes=1"
+    namespace: dict = {}
+    exec(readme.replace(README_BUDGET, tiny), namespace)  # noqa: S102
+    assert namespace["summary"]["steps"] == 20
+    assert namespace["action"].shape == namespace["env"].action_space.shape
+    pytest.importorskip("onnxruntime")
+    [export] = [argv for _, argv in eabc_commands((ROOT / "README.md").read_text())
+                if argv[0] == "export-policy"]  # fmt: skip
+    cli.main(export)
+    [deploy] = blocks["docs/deploy.md"]
+    exec(deploy, {})  # noqa: S102
 
 
 def test_ci_runs_the_readme_test_command():

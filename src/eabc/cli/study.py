@@ -73,7 +73,7 @@ def run_study(cmd: Study) -> None:
 
     if not cmd.specs:  # tyro takes none; a study of nothing would write an empty --out
         raise ValueError(
-            "eabc study: no SPEC given; name at least one sweep spec (YAML), e.g. "
+            "eabc study: no spec given; name at least one sweep spec (YAML), e.g. "
             "eabc study docs/results/study-1m/1-hopper-halfcheetah.yaml --within 45m"
         )
     out = study.check_out(cmd.out)
