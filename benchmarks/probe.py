@@ -1,6 +1,6 @@
-"""A probe of bad inputs, faults and misuses: some 750 cases in seven classes, each judged good or bad.
+"""A probe of bad inputs, faults and misuses: some 830 cases in seven classes, each judged good or bad.
 
-    nice python benchmarks/probe.py                  # every case, 5-7 minutes on 2 busy cores
+    nice python benchmarks/probe.py                  # every case, about 6.5 minutes on 2 cores
     nice python benchmarks/probe.py --classes 1 3    # only those classes
     python benchmarks/probe.py --list                # the cases, without running them
     nice python benchmarks/probe.py --subprocess     # each case as `python -m eabc.cli` (slower)
@@ -143,6 +143,9 @@ def run_forked(
         code = 70
         try:
             resource.setrlimit(resource.RLIMIT_AS, (MEMORY, MEMORY))
+            # Ctrl-C as a terminal gives it: a probe started in the background has SIGINT ignored
+            # (as a shell does for its background jobs), and its children would inherit that.
+            signal.signal(signal.SIGINT, signal.default_int_handler)
             os.chdir(folder)
             os.environ.update({k: str(folder / v) if v.startswith(".") else v
                                for k, v in env.items()})  # fmt: skip
@@ -222,7 +225,10 @@ def run_subprocess(
 
 
 def _limit_memory() -> None:
+    """In the command's process before it starts: the memory limit, and SIGINT at its default
+    (ignored in a probe started in the background, which its children would inherit)."""
     resource.setrlimit(resource.RLIMIT_AS, (MEMORY, MEMORY))
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 def verdict(case: Case, outcome: Outcome, before: dict, after: dict, folder: Path) -> str | None:

@@ -4,7 +4,7 @@ counters, a batch, a network, a replay buffer or a dataset larger than the memor
 with options it would ignore, a flag or a setting given twice, a grid value written two ways, and
 --dry-run judging flags as the run does (5); export-policy onto the run's own files, a folder, a
 FIFO, a device or a link to the run's config.json (2); Ctrl-C while train, sac or sweep works
-(7; data make's Ctrl-C is tested in tests/test_adversarial_bounds.py, as a process of its own).
+and while data make writes its file (7).
 
 Every refusal must come before anything is written: the probe checks that the case's directory
 is as it was (no run directory left to block a retry).
@@ -159,4 +159,23 @@ def interrupted(base: Path) -> list[Case]:
              then(data, _spec(steps=200000, grid={"hidden_dims": [[32, 32]]})),
              ("sweep interrupted",), _no_temporaries("root"), timeout=180,
              interrupt="root/logs"),
+        # the folder appears as the file is written (1M rows: seconds), after a minute or two
+        Case(7, "Ctrl-C on data make as it writes", ["data", "make", "hopper-random",
+             "--cache-dir", "c"], "interrupted", names=("eabc data make hopper-random",
+             "complete and kept"), check=_no_half_dataset, timeout=900,
+             interrupt="c/datasets"),
     ]  # fmt: skip
+
+
+def _no_half_dataset(folder: Path, outcome: Outcome) -> str | None:
+    """An interrupted data make: no temporary file, and a dataset only where it says it kept one
+    whole (one that loads with all its rows)."""
+    from eabc.data.loaders import load_file  # noqa: PLC0415
+
+    left = sorted(p.name for p in (folder / "c" / "datasets").glob("*") if p.is_file())
+    kept = "complete and kept" in outcome.err
+    if left != (["hopper-random.hdf5"] if kept else []):
+        return f"left in the cache: {left} ({'kept' if kept else 'nothing kept'}, it says)"
+    if kept and load_file(folder / "c" / "datasets" / left[0]).size != 1_000_000:
+        return "the dataset it kept is not whole"
+    return None
