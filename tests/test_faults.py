@@ -229,6 +229,8 @@ def test_bad_flags_and_settings_are_refused(tmp_path, pendulum_dataset):
         ({"tau": -1}, r"tau=-1.0 must be in \(0, 1\]"),
         ({"actor_lr": -1}, "actor_lr=-1.0 must be > 0"),
         ({"discount": 1.5}, r"discount=1.5 must be in \[0, 1\)"),
+        ({"alpha": float("nan")}, "alpha=nan must be finite and >= 0"),  # not "must be >= 0"
+        ({"tau": float("nan")}, r"tau=nan must be finite and in \(0, 1\]"),
         ({"policy_freq": 1.5}, "policy_freq=1.5 is not valid"),
         ({"behavior_cloning": "maybe"}, "must be true or false"),
     ]:

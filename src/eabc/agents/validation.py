@@ -84,8 +84,9 @@ def validate(preset: Any, algo: str, overrides: dict[str, Any] | None = None) ->
         else:
             ok, text = (lambda v: True), ""
         finite = not isinstance(value, float) or math.isfinite(value)
-        if not finite or not ok(value):
-            raise SettingError(f"{algo} setting {name}={value!r} must be {text or 'finite'}")
+        if not finite or not ok(value):  # NaN fails every comparison: say finite first
+            must = text if finite else " and ".join(filter(None, ("finite", text)))
+            raise SettingError(f"{algo} setting {name}={value!r} must be {must}")
         items = value if isinstance(value, tuple) else (value,)
         if any(isinstance(v, int) and v > ranges.INT32_MAX for v in items):
             raise SettingError(
