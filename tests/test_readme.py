@@ -1,6 +1,7 @@
 """Every ``eabc`` command README.md and docs/ tell a user to type parses and passes the checks the
 command makes before it works (``eabc train`` through its ``--dry-run`` plan: dataset name,
-algorithm settings, schedule), and README's first command runs for real on a tiny budget."""
+algorithm settings, schedule), README's first command runs for real on a tiny budget, every
+``python benchmarks/...`` command parses with its script's own parser, and every Python block runs."""
 
 from __future__ import annotations
 
@@ -133,6 +134,49 @@ def test_readme_first_command_runs(tmp_path, monkeypatch):
     [run_dir] = (tmp_path / "runs").iterdir()
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["steps"] == 20 and summary["final_score"] == summary["final_score"]  # not NaN
+
+
+def benchmark_commands(text: str) -> list[list[str]]:
+    """Each ``python benchmarks/NAME.py ...`` a reader types (fenced shell blocks and indented
+    code blocks), as its argument list from the script on."""
+    lines = [line for _, line in shell_lines(text)]
+    lines += [
+        line for line in text.splitlines() if line.startswith("    ") and "benchmarks/" in line
+    ]
+    commands = []
+    for line in lines:
+        words = shlex.split(line, comments=True) + ["&&"]
+        for i, word in enumerate(words[:-1]):
+            if word == "python" and words[i + 1].startswith("benchmarks/"):
+                end = next(j for j in range(i + 1, len(words)) if words[j] in ("&&", "|", ";"))
+                commands.append(words[i + 1 : end])
+    return commands
+
+
+class _Parsed(Exception):
+    """Raised once a script's command line parsed: the script stops before its work."""
+
+
+def test_every_documented_benchmark_command_parses(monkeypatch):
+    """``python benchmarks/...`` in README and docs/: the script exists and its own argument
+    parser takes the arguments shown (a renamed or dropped flag fails here, not for a reader)."""
+    import argparse  # noqa: PLC0415
+    import runpy  # noqa: PLC0415
+
+    commands = [argv for doc in DOCUMENTS for argv in benchmark_commands(doc.read_text())]
+    assert len(commands) >= 5 and ["benchmarks/probe.py"] in commands
+    real = argparse.ArgumentParser.parse_args
+
+    def parse_then_stop(self, args=None, namespace=None):
+        real(self, args, namespace)
+        raise _Parsed
+
+    monkeypatch.setattr(argparse.ArgumentParser, "parse_args", parse_then_stop)
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))  # the scripts import each other
+    for argv in commands:
+        monkeypatch.setattr(sys, "argv", argv)
+        with pytest.raises(_Parsed):
+            runpy.run_path(str(ROOT / argv[0]), run_name="__main__")
 
 
 def python_blocks(text: str) -> list[str]:
