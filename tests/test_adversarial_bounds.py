@@ -37,7 +37,7 @@ from eabc.cli import main
 from eabc.experiments import results
 from eabc.experiments.spec import expand
 from eabc.training import checkpoint
-from eabc.training.run import TrainConfig
+from eabc.training.config import TrainConfig
 
 SETTINGS = settings(
     deadline=None,

@@ -8,7 +8,7 @@ import pytest
 
 from eabc.data.dataset import Normalizer
 from eabc.evaluation import Evaluator, Policy, _near_rounding_boundary, make_env
-from eabc.training.run import FINAL_EVALUATIONS, TrainConfig
+from eabc.training.config import FINAL_EVALUATIONS, TrainConfig
 
 
 def random_policy(obs_dim, act_dim, seed=0, gaussian=False, hidden=64, scale=1.0):

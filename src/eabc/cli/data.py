@@ -152,7 +152,7 @@ class DataExport:
 def run_data(cmd: DataMake | DataInfo | DataList | DataExport) -> None:
     from eabc.data import generate, loaders, sources  # noqa: PLC0415
     from eabc.data.dataset import DatasetError  # noqa: PLC0415
-    from eabc.training.run import check_cache_dir  # noqa: PLC0415
+    from eabc.training.config import check_cache_dir  # noqa: PLC0415
 
     if cmd.cache_dir is not None:  # checked before minutes of making a dataset, not after
         check_cache_dir(cmd.cache_dir, "--cache-dir")

@@ -345,7 +345,7 @@ def run_results(cmd: Results) -> None:
 
 def final_score_note(runs, evaluations) -> str:
     """What ``final_score`` averages, naming the runs with fewer evaluations than that."""
-    from eabc.training.run import FINAL_EVALUATIONS  # noqa: PLC0415
+    from eabc.training.config import FINAL_EVALUATIONS  # noqa: PLC0415
 
     counts = evaluations.groupby("run_id").size() if len(evaluations) else {}
     fewer = {

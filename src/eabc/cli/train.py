@@ -187,7 +187,7 @@ def train_plan(cmd: Train) -> dict[str, str]:
     from eabc.experiments.sweep import estimate_seconds  # noqa: PLC0415
     from eabc.training import trainer  # noqa: PLC0415
     from eabc.training.checkpoint import CONFIG  # noqa: PLC0415
-    from eabc.training.run import check_evaluation_env, check_memory  # noqa: PLC0415
+    from eabc.training.config import check_evaluation_env, check_memory  # noqa: PLC0415
 
     if cmd.resume:
         run = trainer.resume(cmd.resume, lock=False)  # reads only

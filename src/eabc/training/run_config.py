@@ -3,7 +3,7 @@
 Resume, evaluate, ``load_policy``, the ONNX export and ``eabc results`` read a run's config.json
 through :func:`read`, which checks it against :class:`RunConfigFile` before anything uses it: each
 key of its type and range, no key this package never writes, the train settings together as
-:class:`~eabc.training.run.TrainConfig` checks them and the agent settings as the algorithm's own
+:class:`~eabc.training.config.TrainConfig` checks them and the agent settings as the algorithm's own
 (:mod:`eabc.agents.validation`). A hand-edited file (``{}``, a key missing or added, a string
 where a number belongs, a list where a mapping belongs) is refused in one line that names the file,
 the key and what to do (:class:`ConfigError`), rather than raising ``KeyError`` deep in a reader.
@@ -34,6 +34,7 @@ from eabc import ranges
 from eabc.agents import ALGORITHMS, validation
 from eabc.data.dataset import reference_scores_problem
 from eabc.training.checkpoint import CONFIG, read_config
+from eabc.training.config import TrainConfig
 
 REQUIRED = ("dataset", "algo", "seed", "steps")
 """Train settings without which a config.json does not say which run it is or how long it is."""
@@ -107,21 +108,14 @@ def check_max_action(config: dict, path: Path, env) -> None:
         )
 
 
-def _train_config() -> type:
-    from eabc.training.run import TrainConfig  # noqa: PLC0415 (run.py reads configs through here)
-
-    return TrainConfig
-
-
 @functools.cache
 def train_model() -> type[pydantic.BaseModel]:
     """TrainConfig's fields as a strict model: :data:`REQUIRED` required, the others with
     TrainConfig's defaults; each number in the range TrainConfig declares for it (steps and
     intervals in [1, 2**31 - 1], the seed in its range), the algorithm one this package has."""
-    config = _train_config()
-    hints = typing.get_type_hints(config, include_extras=True)  # the ranges TrainConfig declares
+    hints = typing.get_type_hints(TrainConfig, include_extras=True)  # the declared ranges
     fields: dict[str, Any] = {}
-    for field in dataclasses.fields(config):
+    for field in dataclasses.fields(TrainConfig):
         default = ... if field.name in REQUIRED else field.default
         fields[field.name] = (hints[field.name], default)
 
@@ -154,7 +148,7 @@ def check(config: dict, path: Path) -> dict:
         raise ConfigError(_message({**first, "loc": ("train", *first["loc"])}, path)) from None
     train = config["train"]
     try:  # the settings together (intervals that divide), as training checks them
-        _train_config()(**{**train, "cache_dir": None})
+        TrainConfig(**{**train, "cache_dir": None})
     except ValueError as error:
         raise ConfigError(f"{path}: train: {error}; fix it by hand {_REDO}") from None
     algorithm = ALGORITHMS[train["algo"]]

@@ -31,6 +31,11 @@ from eabc.training.chunks import (
     train_chunk,
     train_chunk_runs,
 )
+from eabc.training.config import (  # noqa: F401 (the API: trainer.TrainConfig, ...)
+    FINAL_EVALUATIONS,
+    TrainConfig,
+    resolve_agent_config,
+)
 from eabc.training.health import (
     divergence_warning,
     first_divergence,
@@ -39,15 +44,12 @@ from eabc.training.health import (
     value_range,
 )
 from eabc.training.logger import CURVE, RunLogger, plot_curve
-from eabc.training.run import (  # noqa: F401 (the API: trainer.start, trainer.TrainConfig, ...)
-    FINAL_EVALUATIONS,
+from eabc.training.run import (  # noqa: F401 (the API: trainer.start, ...)
     PRETRAIN_PROGRESS,
     SUMMARY,
     Run,
-    TrainConfig,
     _init_agent,
     prepared,
-    resolve_agent_config,
     resume,
     start,
 )
