@@ -614,6 +614,7 @@ def test_a_run_records_its_reward_convention_and_an_older_run_resumes_on_r_minus
 
 
 def test_antmaze_names_settings_and_errors(made):
+    from eabc.agents import eabc
     from eabc.data import generate, loaders
     from eabc.evaluation import check_spaces, make_env
 
@@ -622,7 +623,7 @@ def test_antmaze_names_settings_and_errors(made):
     table5 = {"umaze": 1.0, "umaze-diverse": 0.5, "medium-diverse": 0.75, "medium-play": 1.0,
               "large-diverse": 1.0, "large-play": 1.0}  # fmt: skip
     for kind, p in table5.items():
-        assert tasks.default_confidence_level(("antmaze", kind)) == p
+        assert eabc.CONFIDENCE_LEVEL[("antmaze", kind)] == p
         assert f"antmaze-{kind}" in generate.builtin_names()
     # a D4RL file under its own name gets the AntMaze settings without attributes
     assert tasks.env_info(("antmaze", "large-diverse")).env_id == "eabc/AntMaze-Large-v0"

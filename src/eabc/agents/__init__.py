@@ -16,8 +16,10 @@ MODULES = (eabc, bc, wpc, iql, cql, sac, bear, uwac, mopo, morel, rebrac)
 ALGORITHMS: dict[str, Algorithm] = {
     algorithm.name: algorithm for module in MODULES for algorithm in module.ALGORITHMS
 }
+DEFAULT = next(iter(ALGORITHMS))
+"""What ``eabc train`` runs without ``--algo``: the first registered algorithm."""
 
-__all__ = ["ALGORITHMS", "MODULES", "Algorithm", "get_algorithm"]
+__all__ = ["ALGORITHMS", "DEFAULT", "MODULES", "Algorithm", "get_algorithm"]
 
 
 def get_algorithm(name: str) -> Algorithm:

@@ -58,4 +58,8 @@ def update(
     return BCState(actor, actor_opt, state.step + 1), metrics
 
 
-ALGORITHMS = (Algorithm("bc", "BC", PRESETS["bc"], init, update, column=0, steps_per_s=2319.0),)
+ALGORITHMS = (
+    # It reads no reward; "raw" as the TD3+BC code whose BC baseline it is.
+    Algorithm("bc", "BC", PRESETS["bc"], init, update, column=0, steps_per_s=2319.0,
+              reward_convention="raw"),
+)  # fmt: skip

@@ -68,8 +68,9 @@ class Algorithm:
     a run killed during the pretraining continues it where it stopped."""
     resolve: Callable[..., Any] | None = None
     """``resolve(config, dataset_name, steps, given) -> config``: settings that depend on the data
-    or the run's length (``steps``; None when unknown) (Table 3's p, IQL's schedule), where the user did not set them (``given``
-    is the set of names they set)."""
+    or the run's length (``steps``; None when unknown), where the user did not set them (``given``
+    is the set of names they set): the paper's defaults per dataset (EABC's Table 3 p, MOPO's
+    h and lambda), IQL's schedule. Its tables live in the algorithm's own file."""
     batch_size: int = 256
     """The mini-batch size a run trains with where the user gives none (``--batch-size``):
     Table 2's 256, ReBRAC's 1024."""
@@ -111,6 +112,22 @@ class Algorithm:
     column: float = 50.0
     """Where its column goes in the paper's tables (Table 1's order, then Table 6's, then the
     rest); ties by name."""
+    reward_convention: str = "minus-one"
+    """What it trains on where the data's rewards are sparse goal rewards (AntMaze's stored 0/1)
+    and the user sets no ``reward_convention``: ``raw`` or ``minus-one`` (``r - 1``), as its
+    published code (or the code it is built on) does; ``minus-one``, what every run trained on
+    before the setting existed, where that code says nothing (:mod:`eabc.training.rewards`)."""
+    reward_conventions: Mapping[str, Callable[[Any], Any]] = dataclasses.field(default_factory=dict)
+    """Reward conventions its file defines, by name: ``rule(dataset) -> dataset`` on the stored
+    0/1 rewards (IQL's ``iql-scale``), which a run of any algorithm may choose."""
+    comparison_baseline: bool = False
+    """Reports compare every other label against it when a sweep ran it (TD3+BC, the study's
+    reference); where several are, the first in the registry's order."""
+    recommended_variant: str | None = None
+    """Another registered algorithm that reports set beside this one, dataset by dataset, where
+    this one fails (``failures.md``; EABC's is ``eabc-ln``); ``eabc report --fix`` names another."""
+    divergence_advice: str = ""
+    """What to try when its critics run away: the trainer's warning ends with it."""
     state_layout: int = 1
     """The layout of ``init``'s state in checkpoints, which record it: raise it when the state's
     entries move or are renamed, so that checkpoints of the old layout are refused with a message

@@ -370,12 +370,39 @@ def _step(state: EABCState, batch: Batch, key, config: EABCConfig, max_action, d
     return new, metrics
 
 
+# Table 3 of the paper: the best confidence level p per (environment, dataset kind); Table 5's
+# for AntMaze.
+CONFIDENCE_LEVEL: dict[tuple[str, str], float] = {
+    ("halfcheetah", "expert"): 0.5, ("hopper", "expert"): 1.0, ("walker2d", "expert"): 0.5,
+    ("halfcheetah", "medium-expert"): 1.0, ("hopper", "medium-expert"): 0.5,
+    ("walker2d", "medium-expert"): 0.25,
+    ("halfcheetah", "medium"): 0.0, ("hopper", "medium"): 0.25, ("walker2d", "medium"): 0.25,
+    ("halfcheetah", "medium-replay"): 0.0, ("hopper", "medium-replay"): 0.0,
+    ("walker2d", "medium-replay"): 0.0,
+    ("halfcheetah", "random"): 0.0, ("hopper", "random"): 0.0, ("walker2d", "random"): 0.95,
+    ("antmaze", "umaze"): 1.0, ("antmaze", "umaze-diverse"): 0.5,
+    ("antmaze", "medium-play"): 1.0, ("antmaze", "medium-diverse"): 0.75,
+    ("antmaze", "large-play"): 1.0, ("antmaze", "large-diverse"): 1.0,
+}  # fmt: skip
+# q of the authors' earlier quantile BC rule per (environment, dataset kind)
+# (docs/algorithm.md#the-authors-earlier-bc-rule).
+QUANTILE_LEVEL: dict[tuple[str, str], float] = {
+    ("halfcheetah", "expert"): 1.0, ("hopper", "expert"): 0.9, ("walker2d", "expert"): 1.0,
+    ("halfcheetah", "medium-expert"): 1.0, ("hopper", "medium-expert"): 0.9,
+    ("walker2d", "medium-expert"): 1.0,
+    ("halfcheetah", "medium"): 0.05, ("hopper", "medium"): 0.9, ("walker2d", "medium"): 1.0,
+    ("halfcheetah", "medium-replay"): 0.05, ("hopper", "medium-replay"): 0.45,
+    ("walker2d", "medium-replay"): 0.0,
+    ("halfcheetah", "random"): 0.05, ("hopper", "random"): 0.05, ("walker2d", "random"): 0.0,
+}  # fmt: skip
+
+
 def resolve(config: EABCConfig, dataset_name: str, steps: int, given: frozenset[str]):
     """Table 3's p (bc_weight bernoulli) and the authors' earlier q (bc_weight quantile) for the
     dataset, where they are unset."""
     task = tasks.parse_task(dataset_name)
     if config.bc_weight == "quantile" and config.quantile_level is None:
-        q = tasks.default_quantile_level(task)
+        q = QUANTILE_LEVEL.get(task)
         if q is None:
             raise ValueError(
                 f"no default quantile level q for dataset {dataset_name!r} (the authors' "
@@ -384,7 +411,7 @@ def resolve(config: EABCConfig, dataset_name: str, steps: int, given: frozenset[
             )
         config = dataclasses.replace(config, quantile_level=q)
     if config.bc_weight == "bernoulli" and config.confidence_level is None:
-        p = tasks.default_confidence_level(task)
+        p = CONFIDENCE_LEVEL.get(task)
         if p is None:
             raise ValueError(
                 f"no default confidence level p for dataset {dataset_name!r} (Table 3 covers "
@@ -408,18 +435,26 @@ _FAMILY = {
     # Used only as numbers in the losses (a Bernoulli probability, lambda's numerator, mean -
     # beta * std): the datasets of one environment, with Table 3's p each, train as one program.
     "traced_settings": ("confidence_level", "alpha", "pessimism_beta"),
+    # The authors' TD3_BC code trains on the stored rewards (TD3_BC/main.py changes none).
+    "reward_convention": "raw",
 }
+DIVERGENCE_ADVICE = (
+    "For EABC, more behaviour cloning (a higher --confidence-level) is what stopped it on our "
+    "hopper-medium; --pessimism min only slowed it."
+)
+"""What the trainer's warning suggests when an EABC run's critics run away."""
 # steps/s: the reference host's (eabc.timing), by benchmarks/algorithms.py, hopper shapes.
 ALGORITHMS = (
     Algorithm("eabc", "EABC", PRESETS["eabc"], init, update, column=13, steps_per_s=151.0,
-              cost=_ensemble_cost(10), **_FAMILY),
+              cost=_ensemble_cost(10), recommended_variant=RECOMMENDED,
+              divergence_advice=DIVERGENCE_ADVICE, **_FAMILY),
     Algorithm("td3bc", "TD3+BC", PRESETS["td3bc"], init, update, column=2, steps_per_s=620.0,
-              cost=_ensemble_cost(2), **_FAMILY),
+              cost=_ensemble_cost(2), comparison_baseline=True, **_FAMILY),  # the study's reference
     Algorithm("td3", "TD3", PRESETS["td3"], init, update, column=1, steps_per_s=653.0,
               cost=_ensemble_cost(2), **_FAMILY),
     *(
         Algorithm(name, display, PRESETS[name], init, update, column=column, steps_per_s=speed,
-                  cost=_ensemble_cost(10), **_FAMILY)
+                  cost=_ensemble_cost(10), divergence_advice=DIVERGENCE_ADVICE, **_FAMILY)
         for name, display, column, speed in (
             # EABC's rate over LayerNorm's measured cost per step, 1.13-1.24 (docs/speed.md)
             ("eabc-ln", "EABC-LN", 13.5, 122.0),

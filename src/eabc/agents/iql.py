@@ -236,5 +236,7 @@ ALGORITHMS = (
     Algorithm(
         "iql", "IQL", PRESETS["iql"], init, update, column=4,
         preprocess=preprocess, resolve=resolve, steps_per_s=523.0,
+        # r - 1 on AntMaze (train_offline.py); its MuJoCo scaling offered to every algorithm
+        reward_convention="minus-one", reward_conventions={"iql-scale": preprocess},
     ),
 )  # fmt: skip

@@ -1,5 +1,5 @@
-"""What we know about D4RL's tasks: environments, reference returns, training conventions and the
-paper's p per dataset (MuJoCo locomotion, Table 3; AntMaze, Table 5)."""
+"""What we know about D4RL's tasks: environments, reference returns and training conventions.
+What an algorithm's paper sets per task (EABC's p, MOPO's h) lives in the algorithm's own file."""
 
 from __future__ import annotations
 
@@ -41,52 +41,6 @@ REWARD_OFFSET: dict[str, float] = {"antmaze": -1.0}
 """Added to the stored rewards for training, per environment: AntMaze's sparse 0/1 rewards become
 -1/0 as IQL and CORL train on them (``eabc.data.mazes.training_rewards``)."""
 
-# Table 3 of the paper: the best confidence level p per (environment, dataset kind).
-CONFIDENCE_LEVEL: dict[tuple[str, str], float] = {
-    ("halfcheetah", "expert"): 0.5,
-    ("hopper", "expert"): 1.0,
-    ("walker2d", "expert"): 0.5,
-    ("halfcheetah", "medium-expert"): 1.0,
-    ("hopper", "medium-expert"): 0.5,
-    ("walker2d", "medium-expert"): 0.25,
-    ("halfcheetah", "medium"): 0.0,
-    ("hopper", "medium"): 0.25,
-    ("walker2d", "medium"): 0.25,
-    ("halfcheetah", "medium-replay"): 0.0,
-    ("hopper", "medium-replay"): 0.0,
-    ("walker2d", "medium-replay"): 0.0,
-    ("halfcheetah", "random"): 0.0,
-    ("hopper", "random"): 0.0,
-    ("walker2d", "random"): 0.95,
-    # Table 5 (AntMaze).
-    ("antmaze", "umaze"): 1.0,
-    ("antmaze", "umaze-diverse"): 0.5,
-    ("antmaze", "medium-play"): 1.0,
-    ("antmaze", "medium-diverse"): 0.75,
-    ("antmaze", "large-play"): 1.0,
-    ("antmaze", "large-diverse"): 1.0,
-}
-
-# q of the authors' earlier quantile BC rule per (environment, dataset kind)
-# (docs/algorithm.md#the-authors-earlier-bc-rule).
-QUANTILE_LEVEL: dict[tuple[str, str], float] = {
-    ("halfcheetah", "expert"): 1.0,
-    ("hopper", "expert"): 0.9,
-    ("walker2d", "expert"): 1.0,
-    ("halfcheetah", "medium-expert"): 1.0,
-    ("hopper", "medium-expert"): 0.9,
-    ("walker2d", "medium-expert"): 1.0,
-    ("halfcheetah", "medium"): 0.05,
-    ("hopper", "medium"): 0.9,
-    ("walker2d", "medium"): 1.0,
-    ("halfcheetah", "medium-replay"): 0.05,
-    ("hopper", "medium-replay"): 0.45,
-    ("walker2d", "medium-replay"): 0.0,
-    ("halfcheetah", "random"): 0.05,
-    ("hopper", "random"): 0.05,
-    ("walker2d", "random"): 0.0,
-}
-
 _NAME = re.compile(
     r"(?P<env>hopper|halfcheetah|walker2d|ant)[-_/]"
     r"(?P<kind>medium[-_]replay|medium[-_]expert|random|medium|expert)(?![a-z])"
@@ -127,14 +81,6 @@ def antmaze_env_ids() -> set[str]:
 def reward_offset(task: tuple[str, str] | None) -> float | None:
     """What training adds to the task's rewards (None: train on them as they are)."""
     return None if task is None else REWARD_OFFSET.get(task[0])
-
-
-def default_confidence_level(task: tuple[str, str] | None) -> float | None:
-    return None if task is None else CONFIDENCE_LEVEL.get(task)
-
-
-def default_quantile_level(task: tuple[str, str] | None) -> float | None:
-    return None if task is None else QUANTILE_LEVEL.get(task)
 
 
 def normalized_score(episode_return: float, ref_min_score: float, ref_max_score: float) -> float:

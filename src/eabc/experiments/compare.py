@@ -1,9 +1,9 @@
 """Every algorithm against one baseline, dataset by dataset: is it above, below, or within noise?
 
-The study (docs/results/study/README.md) asks of a candidate that "at 100K steps it is not below
-TD3+BC on any of the five datasets (beyond seed noise: its 95% bootstrap interval reaches TD3+BC's
-mean) and above it on average". :func:`comparison_table` answers exactly that for every label of
-a sweep:
+The study (docs/results/study/README.md) asks of a candidate that at 100K steps it is not below
+its baseline on any of the five datasets (beyond seed noise: its 95% bootstrap interval reaches
+the baseline's mean) and above it on average. :func:`comparison_table` answers exactly that for
+every label of a sweep:
 
 - per dataset, the label's mean final score over its seeds and the 95% percentile bootstrap
   interval of that mean (seeds resampled with replacement), against the baseline's mean there;
@@ -25,6 +25,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from eabc.agents import ALGORITHMS
 from eabc.experiments.labels import dataset_names, display_name, labelled, ordered_labels
 from eabc.experiments.stats import stratified_bootstrap_ci
 from eabc.experiments.tables import AVERAGE, MIN_RUNS, MISSING
@@ -151,6 +152,8 @@ def comparison_to_markdown(
 
 
 def default_baseline(runs: pd.DataFrame) -> str | None:
-    """TD3+BC when the sweep ran it (the study's reference), else none."""
+    """The first registered algorithm whose description makes it the comparison baseline
+    (``Algorithm.comparison_baseline``) and that the sweep ran with its preset, else none."""
     labels = ordered_labels(labelled(runs)) if len(runs) else []
-    return "td3bc" if "td3bc" in labels else None
+    baselines = (name for name, a in ALGORITHMS.items() if a.comparison_baseline)
+    return next((name for name in baselines if name in labels), None)

@@ -202,7 +202,7 @@ def _value_key(value):
     return round(float(value), 9) if isinstance(value, int | float | np.number) else str(value)
 
 
-def _value_label(parameter: str, value, algo: str = "eabc") -> str:
+def _value_label(parameter: str, value, algo: str) -> str:
     if value is None:
         return "none"
     short = get_algorithm(algo).short_names.get(parameter) if algo in ALGORITHMS else None
@@ -211,7 +211,7 @@ def _value_label(parameter: str, value, algo: str = "eabc") -> str:
     return str(value)
 
 
-def _value_sort(parameter: str, value, algo: str = "eabc") -> tuple:
+def _value_sort(parameter: str, value, algo: str) -> tuple:
     choices = _choices(algo, parameter)
     if value in choices:  # a Literal setting: the order its declaration gives
         return (0, choices.index(value), "")
@@ -229,18 +229,19 @@ def _choices(algo: str, parameter: str) -> tuple:
 
 
 def _paper_value(algo: str, other: str, dataset: str):
-    """What the algorithm's own preset gives ``other`` on ``dataset`` (p: Table 3's)."""
+    """What the algorithm's own preset gives ``other`` on ``dataset`` (resolved for it: the
+    paper's default there)."""
     if algo not in ALGORITHMS:
         return None
     algorithm = get_algorithm(algo)
     try:
         config = algorithm.resolved(algorithm.preset, dataset, 0, set())
-    except ValueError:  # e.g. no Table 3 p for this dataset
+    except ValueError:  # no paper default for this dataset
         config = algorithm.preset
     return getattr(config, other, None)
 
 
-def _reference(group: pd.DataFrame, other: str, dataset: str, algo: str = "eabc"):
+def _reference(group: pd.DataFrame, other: str, dataset: str, algo: str):
     """The value an ablation holds ``other`` at: the default runs', else the algorithm's preset
     (resolved for the dataset), else the mode."""
     default = group[group["variant"] == ""]
@@ -279,8 +280,19 @@ def _ablation_runs(runs: pd.DataFrame, parameter: str, algo: str) -> pd.DataFram
     return out
 
 
-def ablation_values(runs: pd.DataFrame, parameter: str, algo: str = "eabc") -> list:
-    """The values of ``parameter`` that :func:`plot_ablation` would compare, in order."""
+def default_ablation_algo(parameter: str) -> str:
+    """The first registered algorithm whose reports compare ``parameter``
+    (``Algorithm.report_settings``)."""
+    for name, algorithm in ALGORITHMS.items():
+        if parameter in algorithm.report_settings:
+            return name
+    raise ValueError(f"unknown ablation parameter {parameter!r}; use {ABLATION_PARAMETERS}")
+
+
+def ablation_values(runs: pd.DataFrame, parameter: str, algo: str | None = None) -> list:
+    """The values of ``parameter`` that :func:`plot_ablation` would compare, in order (``algo``
+    None: :func:`default_ablation_algo`)."""
+    algo = algo or default_ablation_algo(parameter)
     values = set(_ablation_runs(runs, parameter, algo)["value"])
     return sorted(values, key=lambda v: _value_sort(parameter, v, algo))
 
@@ -290,16 +302,18 @@ def plot_ablation(
     evaluations: pd.DataFrame,
     parameter: str,
     path: str | Path,
-    algo: str = "eabc",
+    algo: str | None = None,
     curve: str = "score",
     ylabel: str = "normalised score",
     vector: Sequence[str] = (),
 ) -> Path:
-    """Figures 2-4: per dataset, learning curves of ``algo`` for each value of ``parameter``.
+    """Figures 2-4: per dataset, learning curves of ``algo`` (None: :func:`default_ablation_algo`)
+    for each value of ``parameter``.
 
     ``parameter`` is ``num_critics``, ``confidence_level`` or ``pessimism``; the other two are held
     fixed (see :func:`ablation_values`). Mean +- 1 std over seeds, the title says how many.
     """
+    algo = algo or default_ablation_algo(parameter)
     sub = _ablation_runs(runs, parameter, algo)
     if sub.empty:
         raise ValueError(f"no runs of {algo!r} to plot an ablation of {parameter!r}")
@@ -380,9 +394,9 @@ def plot_performance_profiles(
 
 
 def _ablation_algo(runs: pd.DataFrame, parameter: str) -> str | None:
-    """EABC if its runs vary ``parameter``, else the first algorithm whose runs do, else None."""
+    """The first algorithm in the registry's order whose runs vary ``parameter``, else None."""
     if any(column not in runs for column in ABLATION_PARAMETERS):
         return None
-    order = list(ALGORITHMS)  # the registry's order: EABC's file first
+    order = list(ALGORITHMS)
     algos = sorted(runs["algo"].unique(), key=lambda a: (order.index(a) if a in order else 99, a))
     return next((a for a in algos if len(ablation_values(runs, parameter, a)) > 1), None)

@@ -1,5 +1,5 @@
 """Labels and order of a sweep's results: a run's label is its algorithm plus its variant
-(``eabc``, ``eabc K=5``); datasets sort as the paper's tables (Hopper, HalfCheetah, Walker2d;
+(``ALGO``, ``ALGO K=5``); datasets sort as the paper's tables (Hopper, HalfCheetah, Walker2d;
 random ... expert), labels by the algorithm's column in Table 1/6, then by their settings.
 Shared by the tables (:mod:`eabc.experiments.tables`) and the figures."""
 
@@ -19,20 +19,20 @@ KIND_ORDER = ("random", "medium", "medium-replay", "medium-expert", "expert")
 ABLATION_PARAMETERS = tuple(
     dict.fromkeys(k for a in ALGORITHMS.values() for k in a.report_settings)
 )
-"""The settings some algorithm's contract lets reports compare (EABC's K, p and pessimism)."""
+"""The settings some algorithm's contract lets reports compare (``Algorithm.report_settings``)."""
 UNKNOWN_COLUMN = 12.5
-"""Where an algorithm the registry does not know goes among the columns (just before EABC's)."""
+"""Where an algorithm the registry does not know goes among the columns (``Algorithm.column``)."""
 
 
 def algo_label(algo: str, variant: str | None = "") -> str:
-    """``algo`` plus its variant when it has one, e.g. ``eabc K=5``."""
+    """``algo`` plus its variant when it has one, e.g. ``ALGO K=5``."""
     variant = "" if is_missing(variant) else str(variant).strip()
     return f"{algo} {variant}" if variant else str(algo)
 
 
 def display_name(label: str) -> str:
-    """A label as a reader of the paper knows it: ``td3bc`` -> ``TD3+BC``, ``eabc K=5`` ->
-    ``EABC K=5`` (a variant keeps its settings); unknown algorithms keep their id."""
+    """A label as a reader of the paper knows it: the algorithm's ``display_name``, a variant
+    keeping its settings (``ALGO K=5`` -> ``NAME K=5``); unknown algorithms keep their id."""
     algo, _, variant = str(label).partition(" ")
     name = ALGORITHMS[algo].display_name if algo in ALGORITHMS else algo
     return f"{name} {variant}" if variant else name

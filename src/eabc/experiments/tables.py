@@ -12,7 +12,7 @@ status, steps, wall_time_s, steps_per_s, final_score``), and ``evaluations``, on
   optimality gap with stratified-bootstrap CIs, from :mod:`eabc.experiments.stats`).
 - :func:`stability_table`: where each algorithm's critics fail, dataset by dataset (the study's
   diagnostics).
-- :func:`failure_table`: published EABC beside the fix, dataset by dataset: where it fails and
+- :func:`failure_table`: a published rule beside its fix, dataset by dataset: where it fails and
   what the ensemble's spread at the policy's actions was as the runaway began.
 """
 
@@ -348,7 +348,7 @@ def stability_to_markdown(table: pd.DataFrame, name: str = "score") -> str:
 
 
 # ----------------------------------------------------------------------------------------------
-# Published EABC beside the fix (the study's failures.md)
+# A published rule beside its fix (the study's failures.md)
 
 
 def _at_onset(group: pd.DataFrame) -> tuple[pd.Series, pd.Series]:
@@ -378,7 +378,7 @@ def failure_table(
     baseline: str | None = None,
     metric: str = "final_score",
 ) -> pd.DataFrame:
-    """Published EABC (label ``published``) beside the fix (label ``fix``), one row per dataset
+    """The published rule (label ``published``) beside its fix (label ``fix``), one row per dataset
     that has runs of both: for each, ``{side}_runs``, ``{side}_score`` (mean final score),
     ``{side}_out_of_range`` (runs whose mean Q left the value range the rewards allow),
     ``{side}_first_out`` (the earliest such step), ``{side}_q_max`` (median over runs of the
@@ -456,6 +456,6 @@ def failure_to_markdown(
         "ratio: above 1 the policy acts where the ensemble is less sure than on the data), both "
         "at the last log row before the runaway (at the end for a run that stayed in range), "
         "median over runs; the share of samples with the BC term on (Table 3's p for published "
-        "EABC), at the last row.\n"
+        f"{display_name(published)}), at the last row.\n"
     )
     return "\n".join(lines) + "\n" + note

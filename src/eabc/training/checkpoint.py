@@ -128,8 +128,8 @@ def read_tree(path: Path) -> dict[str, Any]:
 
 INFINITE = frozenset({"reward_min", "reward_max", "halt_threshold"})
 """State entries that may hold +-inf: running bounds that start infinite before any data is seen
-(EABC's adaptive controllers' reward range) and MOPO's and MOReL's halting threshold, infinite
-until their model is fitted. Every other float, and NaN anywhere, is a trace of corruption."""
+(an adaptive BC-weight controller's reward range) and a model-based algorithm's halting threshold,
+infinite until its model is fitted. Every other float, and NaN anywhere, is a trace of corruption."""
 
 
 def check_values(tree: Any, path: Path) -> None:

@@ -24,7 +24,7 @@ from eabc.data.dataset import Dataset, DatasetError, Normalizer
 def device_data(dataset: Dataset, normalizer: Normalizer, next_actions: bool = False) -> Batch:
     """The whole dataset as one device-resident batch (observations normalised once, up front).
     Where ``next_actions`` asks, with the data's next actions (:func:`data_next_actions`), and
-    only the transitions that have one (:func:`next_action_known`), as ReBRAC's authors train."""
+    only the transitions that have one (:func:`next_action_known`)."""
     rows = next_action_known(dataset) if next_actions else slice(None)
     fields = {
         "observations": jnp.asarray(normalizer(dataset.observations[rows])),
@@ -63,7 +63,7 @@ def data_next_actions(dataset: Dataset) -> np.ndarray:
 def next_action_known(dataset: Dataset) -> np.ndarray:
     """Rows whose next action the data has (the next row continues them) or that need none (a
     terminal: its target does not bootstrap). The others end at a time limit or where the data
-    stops; D4RL's ``qlearning_dataset``, which ReBRAC's authors train on, drops them too."""
+    stops; D4RL's ``qlearning_dataset`` drops them too."""
     known = dataset.terminals.copy()
     known[:-1] |= _continues(dataset)
     return known
@@ -73,10 +73,10 @@ FAST_COMPILE_ENV = "EABC_FAST_COMPILE"
 """Set to 1 to compile the training chunks at XLA's lowest optimisation level: a program compiles
 in about half the time and runs slower, so a run of a few hundred steps starts sooner (the test
 suite's contract checks use it). Its scan runs one step per iteration, not two: the unrolled body
-is twice the code for XLA to compile (UWAC's contract chunk: 7-9 -> 5-6 s of CPU). Its fusions
-are emitted by XLA's older LLVM emitter rather than the MLIR fusion emitters, which take twice
-as long to compile at O0 (the contract chunks of UWAC, EABC and CQL: 23.7 -> 10.5 s of CPU
-together; BEAR's 64-64 chunk: 3.8 -> 1.7 s, its steps about 15% slower). Results differ from the
+is twice the code for XLA to compile (the slowest algorithm's contract chunk: 7-9 -> 5-6 s of
+CPU). Its fusions are emitted by XLA's older LLVM emitter rather than the MLIR fusion emitters,
+which take twice as long to compile at O0 (three algorithms' contract chunks: 23.7 -> 10.5 s of
+CPU together; one 64-64 chunk: 3.8 -> 1.7 s, its steps about 15% slower). Results differ from the
 default build in the last bits."""
 FAST_COMPILE_OPTIONS = {
     "xla_backend_optimization_level": 0,
@@ -117,8 +117,8 @@ def _steps(agent_state, key, sample, update, length: int, unroll: int, period, p
 
     carry = (agent_state, key)
     if period is None:
-        # Two steps per loop iteration (TD3's actor period): +6% steps/s at K = 2 on CPU, same
-        # results.
+        # Two steps per loop iteration (a delayed actor's period of 2): +6% steps/s at K = 2 on
+        # CPU, same results.
         carry, metrics = jax.lax.scan(step, carry, None, length=length, unroll=unroll)
     else:
         carry, metrics = _scheduled_steps(step, carry, length, period, phase, unroll)

@@ -13,8 +13,8 @@ from typing import Any, Literal
 
 import jax
 
-from eabc import paths, ranges
-from eabc.agents import ALGORITHMS, get_algorithm, validation
+from eabc import agents, paths, ranges
+from eabc.agents import ALGORITHMS, get_algorithm
 from eabc.data import generate, tasks
 from eabc.data.dataset import Dataset, DatasetError
 from eabc.evaluation import check_spaces, make_env
@@ -25,20 +25,21 @@ FINAL_EVALUATIONS = 10
 
 
 @dataclasses.dataclass(frozen=True)
-class TrainConfig:
-    """How to train: data, length, evaluation and bookkeeping (the paper's protocol by default)."""
+class TrainConfig(ranges.Settings):
+    """How to train: data, length, evaluation and bookkeeping (the paper's protocol by default).
+    Each field's type says its range (:mod:`eabc.ranges`), checked when the config is made."""
 
     dataset: str = "hopper-random"
     """A built-in name (hopper-random, ...), a .hdf5/.npz path, or minari:ID."""
-    algo: str = "eabc"
-    """Algorithm: eabc, eabc-ln, eabc-trust, eabc-robust, eabc-auto, eabc-quantile, td3bc, td3, bc, iql, cql, cql-lagrange, wpc,
-    sac-n, edac, edac-10, bear, uwac, mopo, morel or rebrac."""
+    algo: str = agents.DEFAULT
+    """Algorithm: a name registered in ``eabc.agents`` (docs/algorithms.md describes each; an
+    unknown name is refused with the list)."""
     seed: ranges.Seed = 0
     """Seeds network initialisation and batch sampling; evaluation uses seed + 100."""
     steps: ranges.Steps = 1_000_000
     """Gradient steps."""
     batch_size: ranges.BatchSize | None = None
-    """Mini-batch size N; unset: the algorithm's (256; ReBRAC 1024)."""
+    """Mini-batch size N; unset: the algorithm's (256 unless its paper says otherwise)."""
     eval_interval: ranges.Steps = 5000
     """Evaluate every this many gradient steps."""
     eval_episodes: ranges.Positive = 10
@@ -61,21 +62,13 @@ class TrainConfig:
     """Where built-in datasets are made (default $EABC_CACHE_DIR or ~/.cache/eabc)."""
 
     def __post_init__(self):
+        super().__post_init__()  # each setting of its declared type and range
         if self.algo not in ALGORITHMS:
             raise ValueError(
                 f"algo: unknown algorithm {self.algo!r}; choose one of {', '.join(ALGORITHMS)}"
             )
         if self.batch_size is None:  # set here, so config.json records the size trained with
             object.__setattr__(self, "batch_size", get_algorithm(self.algo).batch_size)
-        schedules = typing.get_args(typing.get_type_hints(TrainConfig)["eval_schedule"])
-        if self.eval_schedule not in schedules:
-            raise ValueError(
-                f"eval_schedule must be one of {', '.join(schedules)}, got {self.eval_schedule!r}"
-            )
-        hints = typing.get_type_hints(TrainConfig, include_extras=True)
-        for field in dataclasses.fields(self):  # each number within its declared range
-            if ranges.constrained(hints[field.name]):
-                ranges.check(getattr(self, field.name), hints[field.name], field.name)
         for name in ("eval_interval", "checkpoint_interval"):
             value = getattr(self, name)
             if value % self.log_interval:
@@ -193,13 +186,13 @@ def resolve_agent_config(
     algo: str, dataset_name: str, overrides: dict[str, Any], steps: int | None = None
 ) -> Any:
     """The algorithm's preset with the user's overrides, then the settings that depend on the data
-    and the run's length resolved by the algorithm itself (its contract's ``resolve``: Table 3's p
-    for EABC, IQL's schedule over ``steps``, MOPO's per-task h and lambda)."""
+    and the run's length resolved by the algorithm itself (its contract's ``resolve``: its paper's
+    defaults per dataset, schedules over ``steps``)."""
     algorithm = get_algorithm(algo)
     overrides = {k: v for k, v in overrides.items() if v is not None}
     fields = algorithm.settings()
     unknown = set(overrides) - fields
     if unknown:
         raise ValueError(f"{algo} has no setting(s) {sorted(unknown)}; it has {sorted(fields)}")
-    config = validation.validate(algorithm.preset, algo, overrides)
+    config = ranges.validated(algorithm.preset, overrides, f"{algo} setting ")
     return algorithm.resolved(config, dataset_name, steps, set(overrides))

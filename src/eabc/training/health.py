@@ -43,13 +43,15 @@ def in_range(q: float, q_range: tuple[float, float]) -> bool:
     return q_range[0] <= q <= q_range[1]
 
 
-def divergence_warning(name: str, step: int, q_mean: float, q_range: tuple[float, float]) -> str:
-    """What the trainer prints at a run's first out-of-range step, with what to try."""
+def divergence_warning(
+    name: str, step: int, q_mean: float, q_range: tuple[float, float], advice: str = ""
+) -> str:
+    """What the trainer prints at a run's first out-of-range step, with what to try (``advice``:
+    the algorithm's ``divergence_advice``)."""
     return (
         f"warning: {name} at step {step}: mean Q {q_mean:,.0f} lies outside "
         f"[{q_range[0]:,.0f}, {q_range[1]:,.0f}], the discounted returns this data's rewards allow: "
         "the critics are diverging (extrapolation error on out-of-data actions), and scores from "
-        "here on rest on a broken critic. For EABC, more behaviour cloning (a higher "
-        "--confidence-level) is what stopped it on our hopper-medium; --pessimism min only slowed "
-        "it. Training goes on; summary.json records the step as q_out_of_range_step."
+        f"here on rest on a broken critic. {advice + ' ' if advice else ''}Training goes on; "
+        "summary.json records the step as q_out_of_range_step."
     )

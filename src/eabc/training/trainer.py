@@ -124,8 +124,8 @@ def train_runs(
     """Train runs that share their networks' shapes together, as one program over a run axis.
 
     The runs may differ in their seed, their dataset (of one observation and action size) and
-    the algorithm's ``traced_settings`` (numbers its update only computes with, such as EABC's p
-    and alpha); everything else must be the same (:func:`one_program_values` says what is not).
+    the algorithm's ``traced_settings`` (numbers its update only computes with, such as a BC
+    weight); everything else must be the same (:func:`one_program_values` says what is not).
     One compiled chunk advances every run (``vmap`` of the scanned update, each run sampling its
     own dataset with its own key); then every run logs, evaluates and checkpoints into its own
     directory exactly as if trained alone, so each can be resumed or reported on its own. Runs
@@ -365,8 +365,9 @@ def _write(run: Run, logger, q_range, row: dict, evaluation: dict | None, state:
     logger.log(row)
     # Warn at the first flagged row only; the log is scanned only when a row is flagged.
     if row.get("q_out_of_range") and first_divergence(logger.rows, q_range) == row["step"]:
+        advice = run.algorithm.divergence_advice
         tqdm.write(
-            divergence_warning(run.run_dir.name, row["step"], row["q_mean"], q_range),
+            divergence_warning(run.run_dir.name, row["step"], row["q_mean"], q_range, advice),
             file=sys.stderr,
         )
     if state is not None:
