@@ -68,7 +68,10 @@ def quiet_unset_defaults(cls: type) -> type:
         if field.default_factory is not dataclasses.MISSING:
             default = field.default_factory()
         empty = default is None or (isinstance(default, list | tuple) and not default)
-        marks = {"help": docs.get(field.name), "help_behavior_hint": "" if empty else None}
+        extras = typing.get_args(hint)[1:] if typing.get_origin(hint) is Annotated else ()
+        given = any(getattr(extra, "help", None) for extra in extras)  # a help made in code wins
+        help_text = None if given else docs.get(field.name)
+        marks = {"help": help_text, "help_behavior_hint": "" if empty else None}
         if any(value is not None for value in marks.values()):
             own[field.name] = Annotated[hint, tyro.conf.arg(**marks)]
     cls.__annotations__ = own
@@ -189,7 +192,22 @@ def check_agent(config, agent, items: tuple[str, ...]) -> None:
         raise ValueError(message if message != str(error) else f"--set: {message}") from None
 
 
-TrainOptions = _parsed_unchecked(TrainConfig)
+def _algorithm_names_in_help(cls: type) -> type:
+    """``cls`` whose ``--algo`` help lists the registered algorithms, in the registry's order:
+    the list follows the registry, so adding an algorithm adds it here."""
+    from eabc.agents import ALGORITHMS  # noqa: PLC0415
+
+    names = f"{', '.join(list(ALGORITHMS)[:-1])} or {list(ALGORITHMS)[-1]}"
+    help_text = f"Algorithm: {names} (docs/algorithms.md describes each)."
+    namespace = {
+        "__annotations__": {"algo": Annotated[str, tyro.conf.arg(help=help_text)]},
+        "algo": cls.algo,
+        "__doc__": cls.__doc__,
+    }
+    return dataclasses.dataclass(frozen=True)(type(cls.__name__, (cls,), namespace))
+
+
+TrainOptions = _algorithm_names_in_help(_parsed_unchecked(TrainConfig))
 SACTrainOptions = _parsed_unchecked(SACTrainConfig)
 
 

@@ -30,6 +30,12 @@ from eabc.experiments.labels import dataset_names, display_name, labelled, order
 from eabc.experiments.stats import stratified_bootstrap_ci
 from eabc.experiments.tables import AVERAGE, MIN_RUNS, MISSING
 
+PUBLISHED, RECOMMENDED = next(
+    ((name, a.recommended_variant) for name, a in ALGORITHMS.items() if a.recommended_variant),
+    (None, None),
+)
+"""The first registered algorithm with a recommended variant (``Algorithm.recommended_variant``)
+and that variant: the two sides of a report's ``failures.md``."""
 COLUMNS = ["runs", "mean", "low", "high", "baseline_runs", "baseline_mean", "difference", "verdict"]
 
 

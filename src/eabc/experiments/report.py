@@ -19,8 +19,8 @@ import numpy as np
 import pandas as pd
 
 from eabc import progress, timing
-from eabc.agents.eabc import PUBLISHED, RECOMMENDED
 from eabc.experiments import compare
+from eabc.experiments.compare import PUBLISHED, RECOMMENDED
 from eabc.experiments.labels import ABLATION_PARAMETERS, display_name, labelled, paper_table
 from eabc.experiments.tables import (
     AVERAGE,
@@ -166,7 +166,7 @@ def _metric_sections(
     prefix: str = "",
     formats: Sequence[str] = DEFAULT_FORMATS,
 ) -> tuple[pd.DataFrame, dict]:
-    """Table 1, the comparison with ``baseline``, published EABC beside ``fix`` and the
+    """Table 1, the comparison with ``baseline``, the published rule beside ``fix`` and the
     stability table of ``runs`` in ``metric``, each written to its file (``PREFIXtable.md``,
     and ``.html`` / ``.tex`` where ``formats`` asks); returns the table and the report's text of
     each, by name. A comparison that cannot be made says why in its place."""
@@ -212,7 +212,7 @@ def _metric_sections(
         text = failure_to_markdown(failures, PUBLISHED, fix, baseline, metric.name)
         write(f"{prefix}failures.md", text)
         sections["failures"] = [
-            f"{level} Where published EABC fails, beside {display_name(fix)}\n",
+            f"{level} Where published {display_name(PUBLISHED)} fails, beside {display_name(fix)}\n",
             f"Also as [{prefix}failures.md]({prefix}failures.md).\n",
             text,
         ]
@@ -241,10 +241,10 @@ def write_report(
     """Every table and figure into ``out_dir``, and ``report.md`` that shows them all.
 
     Writes ``table.md``, ``aggregate.md``, ``curves.png``, ``profiles.png``, ``runtime.png``,
-    ``ablation_PARAMETER.png`` for each parameter that some algorithm's runs vary (EABC's
+    ``ablation_PARAMETER.png`` for each parameter that some algorithm's runs vary (the registry's
     first), ``report.md``, and ``comparison.md``: every label against ``baseline`` (default
-    TD3+BC when the sweep ran it), dataset by dataset; ``failures.md`` when published EABC
-    (label ``eabc``) and ``fix`` both ran: the one beside the other, where the published rule
+    :func:`~eabc.experiments.compare.default_baseline`), dataset by dataset; ``failures.md`` when
+    the published rule (label :data:`PUBLISHED`) and ``fix`` both ran: the one beside the other, where the published rule
     fails and the ensemble's spread at the policy's actions as it did. Returns the paths by file
     name. ``repeats`` (:func:`eabc.experiments.results.repeats`): runs trained more than once,
     kept as ``repeats.csv`` and shown with whether their copies agree. ``formats``

@@ -3,7 +3,7 @@
 A sweep specification (YAML, or the same keys from the command line or a preset) names
 
     datasets: [hopper-medium, walker2d-medium]     # any --dataset value
-    algos: [eabc, td3bc]                            # any --algo value
+    algos: [ALGO, ...]                              # any --algo value
     seeds: [0, 1, 2]
     steps: 1000000
     grid: {num_critics: [5, 10], confidence_level: [0.25, 1.0], pessimism: [mean-std, min]}
@@ -11,7 +11,7 @@ A sweep specification (YAML, or the same keys from the command line or a preset)
 
 and expands to the product datasets x algos x grid x seeds (grid settings apply only to the
 algorithms that have them). ``variants:`` lists named combinations instead of (or beside) a grid,
-``{algo: eabc, critic_layer_norm: true}``, run breadth first in the order given; a variant's own
+``{algo: ALGO, critic_layer_norm: true}``, run breadth first in the order given; a variant's own
 ``datasets: [...]`` replaces the spec's for it, so one spec can put runs in any priority order.
 
 Before it expands, the whole specification is checked by one model (:class:`SweepSpec`): lists are
@@ -421,7 +421,7 @@ def variant_entries(value) -> list[dict[str, Any]]:
 def _variant(
     entry: dict, datasets: list[str]
 ) -> tuple[str, tuple[tuple[str, Any], ...], list[str]]:
-    """A ``variants:`` entry (:func:`variant_entries`), ``{algo: eabc, critic_layer_norm: true}``:
+    """A ``variants:`` entry (:func:`variant_entries`), ``{algo: ALGO, critic_layer_norm: true}``:
     one algorithm with fixed settings (checked against the algorithm's own), and the datasets it
     runs on (its own ``datasets:`` list, else the spec's)."""
     settings = {k: v for k, v in entry.items() if k not in ("algo", "datasets")}
@@ -455,8 +455,8 @@ def groups(runs: list[RunSpec]) -> list[list[RunSpec]]:
 
 
 def job_name(job: list[RunSpec]) -> str:
-    """A job's name in logs: its run's id, its seed group's (``hopper-medium__eabc``), or the
-    first group's and how many more it trains (``hopper-medium__eabc+2``)."""
+    """A job's name in logs: its run's id, its seed group's (``hopper-medium__ALGO``), or the
+    first group's and how many more it trains (``hopper-medium__ALGO+2``)."""
     if len(job) == 1:
         return job[0].run_id
     more = len(dict.fromkeys(run.group_id for run in job)) - 1
