@@ -21,7 +21,8 @@ import numpy as np
 from eabc import load_policy, pytree
 from eabc.agents import get_algorithm
 from eabc.agents.contract import Algorithm
-from eabc.training import checkpoint, chunks, trainer
+from eabc.training import checkpoint, chunks, lifecycle, trainer
+from eabc.training.config import TrainConfig
 
 TINY_INTS = {"buffer_capacity": 4096, "model_max_epochs": 1, "model_members": 2, "model_elites": 1,
              "num_dropout_samples": 4, "num_target_actions": 4}  # fmt: skip
@@ -58,7 +59,7 @@ def _check_contract(tmp_path, pendulum_dataset, algo: str) -> None:
     for name in ("confidence_level", "quantile_level", "actor_bc_weight", "critic_bc_weight"):
         if name in algorithm.settings() and getattr(algorithm.preset, name) is None:
             overrides[name] = 0.5
-    config = trainer.TrainConfig(
+    config = TrainConfig(
         dataset="pendulum-swingup",
         algo=algo,
         steps=10,
@@ -69,7 +70,7 @@ def _check_contract(tmp_path, pendulum_dataset, algo: str) -> None:
         env="Pendulum-v1",
     )
     runs = [
-        trainer.start(dataclasses.replace(config, seed=seed), tmp_path / f"s{seed}", overrides,
+        lifecycle.start(dataclasses.replace(config, seed=seed), tmp_path / f"s{seed}", overrides,
                       pendulum_dataset)
         for seed in (0, 1)
     ]  # fmt: skip
@@ -86,7 +87,7 @@ def _check_contract(tmp_path, pendulum_dataset, algo: str) -> None:
     actors = [jax.tree.leaves(run.state["agent"].actor) for run in runs]
     assert any(not np.array_equal(a, b) for a, b in zip(*actors)), "seeds must differ"
 
-    resumed = trainer.resume(runs[0].run_dir, pendulum_dataset, lock=False)
+    resumed = lifecycle.resume(runs[0].run_dir, pendulum_dataset, lock=False)
     saved, restored = (
         jax.tree.leaves(runs[0].state["agent"]),
         jax.tree.leaves(resumed.state["agent"]),

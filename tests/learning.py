@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from eabc.training import trainer
+from eabc.training import lifecycle, trainer
+from eabc.training.config import TrainConfig
 
 MARGIN = 30.0
 """Normalised points the late evaluations must gain over the untrained policy."""
@@ -16,7 +17,7 @@ def late_gain(
 ) -> tuple[float, float, dict]:
     """``(untrained score, mean score at steps 2000 and 3000, every evaluation)`` of a 3000-step
     run with 64-64 networks, on batches of ``batch_size`` (None: the algorithm's own)."""
-    config = trainer.TrainConfig(
+    config = TrainConfig(
         dataset="pendulum-swingup",
         algo=algo,
         batch_size=batch_size,
@@ -27,7 +28,7 @@ def late_gain(
         eval_episodes=5,
         env="Pendulum-v1",
     )
-    run = trainer.start(config, tmp_path / algo, {"hidden_dims": (64, 64), **overrides}, dataset)
+    run = lifecycle.start(config, tmp_path / algo, {"hidden_dims": (64, 64), **overrides}, dataset)
     untrained = trainer.evaluate(run)["score"]
     trainer.train(run, progress=False)
     late = float(np.mean([run.state["evaluations"][s]["score"] for s in ("2000", "3000")]))

@@ -37,8 +37,8 @@ from eabc.cli import main
 from eabc.data.dataset import DatasetError
 from eabc.data.loaders import load_file
 from eabc.experiments import results
-from eabc.training import checkpoint, run_config, trainer
-from eabc.training.trainer import TrainConfig
+from eabc.training import checkpoint, lifecycle, run_config
+from eabc.training.config import TrainConfig
 
 SETTINGS = settings(
     deadline=None,
@@ -68,7 +68,7 @@ def started(tmp_path_factory):
     config = TrainConfig(dataset=str(root / "tiny.npz"), algo="td3bc", steps=200,
                          log_interval=100, eval_interval=100, checkpoint_interval=100,
                          eval_episodes=1, env="Pendulum-v1")  # fmt: skip
-    run = trainer.start(config, root / "run", {"hidden_dims": (32, 32)})
+    run = lifecycle.start(config, root / "run", {"hidden_dims": (32, 32)})
     run.lock.release()
     checkpoint.save(run.run_dir, run.state, run.algorithm.state_layout, run.identity)
     return root / "run"

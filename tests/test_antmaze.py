@@ -568,7 +568,8 @@ def test_each_reward_convention_is_applied_and_each_algorithm_has_its_published_
     from eabc.agents import get_algorithm
     from eabc.data import loaders
     from eabc.training import rewards
-    from eabc.training.run import TrainConfig, prepared
+    from eabc.training.config import TrainConfig
+    from eabc.training.lifecycle import prepared
 
     data = loaders.load_file(made[0])
     goal_reached = (np.arange(data.size) % 9 == 0) & (np.arange(data.size) < 1200)
@@ -596,19 +597,20 @@ def test_each_reward_convention_is_applied_and_each_algorithm_has_its_published_
 def test_a_run_records_its_reward_convention_and_an_older_run_resumes_on_r_minus_1(made, tmp_path):
     """config.json says which convention a run trained on; a config.json from before the setting
     (none recorded) resumes on r - 1, what every run trained on then."""
-    from eabc.training import run as training
+    from eabc.training import lifecycle
+    from eabc.training.config import TrainConfig
 
-    config = training.TrainConfig(
+    config = TrainConfig(
         dataset=str(made[0]), algo="td3bc", steps=2, eval_interval=2, log_interval=1,
         checkpoint_interval=2, eval_episodes=1,
     )  # fmt: skip
-    training.start(config, tmp_path / "run").lock.release()
+    lifecycle.start(config, tmp_path / "run").lock.release()
     path = tmp_path / "run" / "config.json"
     saved = json.loads(path.read_text())
     assert saved["train"]["reward_convention"] == "raw"
     del saved["train"]["reward_convention"]
     path.write_text(json.dumps(saved))
-    resumed = training.resume(tmp_path / "run")
+    resumed = lifecycle.resume(tmp_path / "run")
     resumed.lock.release()
     assert resumed.config.reward_convention == "minus-one"
 
@@ -695,7 +697,8 @@ def test_iql_learns_the_umaze_from_diverse_data_through_antmazes_pipeline(tmp_pa
     import pointmaze
 
     from eabc.data import antmaze_collect, loaders
-    from eabc.training import trainer
+    from eabc.training import lifecycle, trainer
+    from eabc.training.config import TrainConfig
 
     pointmaze.register()
     path = pointmaze.make_dataset(tmp_path / "pointmaze-umaze-diverse.hdf5", episodes=300, seed=0)
@@ -709,7 +712,7 @@ def test_iql_learns_the_umaze_from_diverse_data_through_antmazes_pipeline(tmp_pa
     assert 0 < near.sum() < 0.1 * data.size and data.timeouts.sum() == 300
 
     def train(algo: str, steps: int, overrides: dict) -> tuple[float, dict[int, float]]:
-        config = trainer.TrainConfig(
+        config = TrainConfig(
             dataset=str(path),
             algo=algo,
             steps=steps,
@@ -718,7 +721,7 @@ def test_iql_learns_the_umaze_from_diverse_data_through_antmazes_pipeline(tmp_pa
             checkpoint_interval=steps,
             eval_episodes=10,
         )
-        run = trainer.start(config, tmp_path / algo, {"hidden_dims": (64, 64), **overrides}, data)
+        run = lifecycle.start(config, tmp_path / algo, {"hidden_dims": (64, 64), **overrides}, data)
         untrained = trainer.evaluate(run)["score"]
         trainer.train(run, progress=False)
         return untrained, {int(s): e["score"] for s, e in run.state["evaluations"].items()}

@@ -13,8 +13,9 @@ from eabc.agents import get_algorithm
 from eabc.cli import main
 from eabc.data.loaders import save_npz
 from eabc.deploy import export_onnx
-from eabc.training import checkpoint, trainer
+from eabc.training import checkpoint, lifecycle
 from eabc.training.checkpoint import CheckpointError
+from eabc.training.config import TrainConfig
 
 SMALL = dict(
     dataset="pendulum-swingup",
@@ -30,8 +31,8 @@ SMALL = dict(
 def started(tmp_path, pendulum_dataset, algo: str, agent: dict, **options):
     """A run that has saved its initial state as the trainer saves a checkpoint (no training:
     the layout is all these tests need)."""
-    config = trainer.TrainConfig(**{**SMALL, **options}, algo=algo)
-    run = trainer.start(config, tmp_path / algo, agent, dataset=pendulum_dataset)
+    config = TrainConfig(**{**SMALL, **options}, algo=algo)
+    run = lifecycle.start(config, tmp_path / algo, agent, dataset=pendulum_dataset)
     run.lock.release()
     checkpoint.save(run.run_dir, run.state, run.algorithm.state_layout)
     return run
@@ -42,7 +43,7 @@ def test_a_checkpoint_records_its_layout_and_a_nested_state_round_trips(tmp_path
     raw = checkpoint.load_raw(run.run_dir)
     assert raw[checkpoint.LAYOUT] == get_algorithm("wpc").state_layout == 2
     assert set(raw["agent"]) == {"td3bc", "value", "value_opt"}
-    resumed = trainer.resume(run.run_dir, pendulum_dataset, lock=False)
+    resumed = lifecycle.resume(run.run_dir, pendulum_dataset, lock=False)
     assert checkpoint.LAYOUT not in resumed.state
     assert jax.tree.structure(resumed.state["agent"]) == jax.tree.structure(run.state["agent"])
     assert load_policy(run.run_dir)(pendulum_dataset.observations[0]).shape == (1,)
@@ -63,9 +64,9 @@ def test_an_old_layout_checkpoint_is_refused_with_what_to_do(tmp_path, pendulum_
         "to finish it"
     )
     with pytest.raises(CheckpointError, match=message):
-        trainer.resume(run.run_dir, pendulum_dataset)  # eabc train --resume
+        lifecycle.resume(run.run_dir, pendulum_dataset)  # eabc train --resume
     with pytest.raises(CheckpointError, match=message):
-        trainer.resume(run.run_dir, pendulum_dataset, lock=False)  # eabc evaluate
+        lifecycle.resume(run.run_dir, pendulum_dataset, lock=False)  # eabc evaluate
     with pytest.raises(CheckpointError, match=message):
         load_policy(run.run_dir)
     with pytest.raises(CheckpointError, match=message):
@@ -74,7 +75,7 @@ def test_an_old_layout_checkpoint_is_refused_with_what_to_do(tmp_path, pendulum_
     newer = {**raw, checkpoint.LAYOUT: 3}  # a payload edited to a layout from the future
     checkpoint.save(run.run_dir, newer)
     with pytest.raises(CheckpointError, match="newer version of eabc.*layout 3"):
-        trainer.resume(run.run_dir, pendulum_dataset)
+        lifecycle.resume(run.run_dir, pendulum_dataset)
 
 
 def test_the_cli_refuses_an_old_layout_in_one_line(tmp_path, pendulum_dataset):
@@ -103,7 +104,7 @@ def test_eabc_checkpoints_without_a_layout_still_resume(tmp_path, pendulum_datas
     data = (run.run_dir / checkpoint.CHECKPOINT).read_bytes()
     assert data[:-40] == pytree.dumps(old), "the previous version's bytes, unchanged"
 
-    resumed = trainer.resume(run.run_dir, pendulum_dataset, lock=False)
+    resumed = lifecycle.resume(run.run_dir, pendulum_dataset, lock=False)
     assert resumed.step == 7 and checkpoint.LAYOUT not in resumed.state
     for name, value in old["agent"]["actor"].items():
         np.testing.assert_array_equal(np.asarray(resumed.state["agent"].actor[name]), value)

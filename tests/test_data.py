@@ -22,7 +22,7 @@ from eabc.data.dataset import Dataset, DatasetError, Normalizer
 from eabc.data.loaders import load_file, save_npz
 from eabc.data.sources import load_dataset
 from eabc.evaluation import check_spaces, make_env
-from eabc.training.trainer import resolve_agent_config
+from eabc.training.config import resolve_agent_config
 
 MINARI_METADATA = {
     "algorithm_name": "a test's random rows",

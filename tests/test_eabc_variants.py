@@ -14,7 +14,7 @@ from learning import MARGIN, late_gain
 
 from eabc import networks
 from eabc.agents import bc_weights, eabc
-from eabc.training import trainer
+from eabc.training.config import resolve_agent_config
 
 eabc_update = quick_jit(eabc.update)
 
@@ -191,7 +191,7 @@ def test_advantage_rule_clones_where_the_policy_takes_the_data_action(batch):
 
 
 def test_advantage_rule_needs_no_confidence_level(batch):
-    resolved = trainer.resolve_agent_config("eabc", "hopper-medium", {"bc_weight": "advantage"})
+    resolved = resolve_agent_config("eabc", "hopper-medium", {"bc_weight": "advantage"})
     assert resolved.confidence_level is None  # nothing to look up, nothing to tune
     config = tiny(bc_weight="advantage")
     state = eabc.init(jax.random.PRNGKey(0), OBS, ACT, config)
@@ -389,18 +389,18 @@ def test_auto_p_moves_only_on_actor_steps_and_drives_the_mask(batch):
 
 
 def test_variant_presets_resolve_against_the_dataset():
-    quantile = trainer.resolve_agent_config("eabc-quantile", "hopper-medium-replay", {})
+    quantile = resolve_agent_config("eabc-quantile", "hopper-medium-replay", {})
     assert quantile.bc_weight == "quantile" and quantile.quantile_level == 0.45
     with pytest.raises(ValueError, match="quantile_level"):
-        trainer.resolve_agent_config("eabc-quantile", "my-data", {})
+        resolve_agent_config("eabc-quantile", "my-data", {})
     # auto needs no p, on any data; published EABC still needs Table 3's.
-    assert trainer.resolve_agent_config("eabc-auto", "my-data", {}).bc_weight == "auto"
-    eabc_q = trainer.resolve_agent_config(
+    assert resolve_agent_config("eabc-auto", "my-data", {}).bc_weight == "auto"
+    eabc_q = resolve_agent_config(
         "eabc", "my-data", {"bc_weight": "quantile", "quantile_level": 0.5}
     )
     assert eabc_q.quantile_level == 0.5
     with pytest.raises(ValueError, match="confidence level"):
-        trainer.resolve_agent_config("eabc", "my-data", {})
+        resolve_agent_config("eabc", "my-data", {})
 
 
 def test_invalid_variant_settings_are_refused():

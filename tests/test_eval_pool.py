@@ -8,9 +8,9 @@ import jax
 import numpy as np
 import pytest
 
-from eabc.training import checkpoint, eval_pool, trainer
+from eabc.training import checkpoint, eval_pool, lifecycle, trainer
+from eabc.training.config import TrainConfig
 from eabc.training.logger import read_log
-from eabc.training.trainer import TrainConfig
 
 SMALL = dict(
     dataset="pendulum-swingup",
@@ -28,7 +28,7 @@ TIMES = {"wall_time", "steps_per_s", "wall_time_s"}
 
 def start(tmp_path, name, dataset, **overrides):
     config = TrainConfig(**{**SMALL, **overrides})
-    return trainer.start(config, tmp_path / name, AGENT, dataset=dataset)
+    return lifecycle.start(config, tmp_path / name, AGENT, dataset=dataset)
 
 
 def results(run_dir, summary):
@@ -82,7 +82,7 @@ def test_a_run_killed_while_its_evaluations_are_out_resumes_to_the_same_end(
     with pytest.raises(Killed):
         trainer.train(killed, progress=False, eval_workers=2)  # a pool of its own, cancelled
     monkeypatch.undo()
-    resumed = trainer.resume(tmp_path / "killed", dataset=pendulum_dataset)
+    resumed = lifecycle.resume(tmp_path / "killed", dataset=pendulum_dataset)
     assert resumed.step == 400
     assert sorted(map(int, resumed.state["evaluations"])) == [100, 200, 300, 400]
     summary = trainer.train(resumed, progress=False, eval_workers=pool)

@@ -22,8 +22,8 @@ from eabc.data.loaders import save_npz
 from eabc.experiments import results, sweep
 from eabc.experiments.presets import PRESETS
 from eabc.experiments.spec import expand, groups
-from eabc.training import trainer
-from eabc.training.trainer import TrainConfig
+from eabc.training import lifecycle, trainer
+from eabc.training.config import TrainConfig
 
 SMALL = dict(
     steps=300,
@@ -41,7 +41,7 @@ def test_seed_vmapped_training_equals_training_the_seeds_one_by_one(tmp_path, pe
     # round differently enough that one weight in a thousand drifts past the tolerance.
     def start(name, seed):
         config = TrainConfig(dataset="pendulum", seed=seed, **SMALL)
-        return trainer.start(config, tmp_path / name, AGENT, dataset=pendulum_dataset)
+        return lifecycle.start(config, tmp_path / name, AGENT, dataset=pendulum_dataset)
 
     together = [start(f"vmap{s}", s) for s in (0, 1, 2)]
     summaries = trainer.train_runs(together, progress=False)

@@ -18,18 +18,18 @@ import time
 import h5py
 import numpy as np
 import pytest
-
 from eabc.agents.validation import SettingError
+
 from eabc.cli import main
 from eabc.data.dataset import Dataset, DatasetError
 from eabc.data.loaders import save_npz
 from eabc.data.sources import load_dataset
 from eabc.experiments import results, sweep
 from eabc.experiments.spec import expand
-from eabc.training import checkpoint, chunks, logger, trainer
+from eabc.training import checkpoint, chunks, lifecycle, logger, trainer
 from eabc.training.checkpoint import CheckpointError
+from eabc.training.config import TrainConfig, resolve_agent_config
 from eabc.training.lock import OWNER, RunLockedError
-from eabc.training.trainer import TrainConfig
 
 SMALL = dict(
     dataset="pendulum-swingup",
@@ -57,7 +57,7 @@ def quick_chunks_for_the_module():
 
 def start(tmp_path, name, dataset, agent=AGENT, **overrides):
     config = TrainConfig(**{**SMALL, **overrides})
-    return trainer.start(config, tmp_path / name, agent, dataset=dataset)
+    return lifecycle.start(config, tmp_path / name, agent, dataset=dataset)
 
 
 def log_without_wall(run_dir) -> str:
@@ -126,7 +126,7 @@ def test_kill_during_a_write_then_resumes_give_the_uninterrupted_results(
     run.lock.release()  # the kernel does this for a killed process
 
     for _ in range(2):  # the second resume finds the run finished: nothing may change
-        trainer.train(trainer.resume(tmp_path / "run", pendulum_dataset), progress=False)
+        trainer.train(lifecycle.resume(tmp_path / "run", pendulum_dataset), progress=False)
         assert_same_results(straight, tmp_path / "run")
 
 
@@ -142,7 +142,7 @@ def test_run_killed_before_its_first_checkpoint_starts_again(
     assert (tmp_path / "run/log.csv").exists() and not (
         tmp_path / "run/checkpoint.msgpack"
     ).exists()
-    trainer.train(trainer.resume(tmp_path / "run", pendulum_dataset), progress=False)
+    trainer.train(lifecycle.resume(tmp_path / "run", pendulum_dataset), progress=False)
     assert_same_results(straight, tmp_path / "run")
 
 
@@ -162,11 +162,11 @@ def test_corrupt_truncated_and_foreign_checkpoints_are_refused(
     for _name, data in [("flipped", bytes(flipped)), ("truncated", good[: len(good) // 3])]:
         (run_dir / checkpoint.CHECKPOINT).write_bytes(data)
         with pytest.raises(CheckpointError, match="checkpoint.msgpack.*(corrupt|truncated)"):
-            trainer.resume(run_dir, pendulum_dataset)
+            lifecycle.resume(run_dir, pendulum_dataset)
 
     # A checkpoint from before the checksum trailer still resumes.
     (run_dir / checkpoint.CHECKPOINT).write_bytes(good[:-40])
-    assert trainer.resume(run_dir, pendulum_dataset, lock=False).step == 400
+    assert lifecycle.resume(run_dir, pendulum_dataset, lock=False).step == 400
 
     # Another run's checkpoint (K = 2 EABC) in a TD3+BC run of other width is refused: by the
     # run it records, and where it records none (an older eabc's), by its structure.
@@ -174,17 +174,17 @@ def test_corrupt_truncated_and_foreign_checkpoints_are_refused(
     other.lock.release()
     (tmp_path / "td3bc" / checkpoint.CHECKPOINT).write_bytes(good)
     with pytest.raises(CheckpointError, match=r"belongs to run \w+ \(eabc, .* is run \w+ \(td3bc"):
-        trainer.resume(tmp_path / "td3bc", pendulum_dataset)
+        lifecycle.resume(tmp_path / "td3bc", pendulum_dataset)
     raw = checkpoint.load_raw(straight)
     checkpoint.save(tmp_path / "td3bc", {k: v for k, v in raw.items() if k != checkpoint.IDENTITY})
     with pytest.raises(CheckpointError, match="not a checkpoint of this td3bc run"):
-        trainer.resume(tmp_path / "td3bc", pendulum_dataset)
+        lifecycle.resume(tmp_path / "td3bc", pendulum_dataset)
 
     # A directory where the checkpoint should be: one line, no traceback.
     (tmp_path / "td3bc" / checkpoint.CHECKPOINT).unlink()
     (tmp_path / "td3bc" / checkpoint.CHECKPOINT).mkdir()
     with pytest.raises(CheckpointError, match="cannot be read"):
-        trainer.resume(tmp_path / "td3bc", pendulum_dataset)
+        lifecycle.resume(tmp_path / "td3bc", pendulum_dataset)
 
 
 def test_resume_refuses_other_data_and_old_runs_skip_the_check(
@@ -196,25 +196,25 @@ def test_resume_refuses_other_data_and_old_runs_skip_the_check(
         (run_dir / name).write_bytes((straight / name).read_bytes())
     changed = dataclasses.replace(pendulum_dataset, rewards=pendulum_dataset.rewards + 1.0)
     with pytest.raises(DatasetError, match="content fingerprint"):
-        trainer.resume(run_dir, changed)
+        lifecycle.resume(run_dir, changed)
     config = json.loads((run_dir / "config.json").read_text())
     del config["dataset"]["fingerprint"]  # a run from before the fingerprint (and identities)
     del config["run_id"]
     (run_dir / "config.json").write_text(json.dumps(config))
     raw = checkpoint.load_raw(run_dir)
     checkpoint.save(run_dir, {k: v for k, v in raw.items() if k != checkpoint.IDENTITY})
-    assert trainer.resume(run_dir, changed, lock=False).step == 400
+    assert lifecycle.resume(run_dir, changed, lock=False).step == 400
 
 
 def test_two_writers_on_one_run_directory(tmp_path, pendulum_dataset):
     first = start(tmp_path, "run", pendulum_dataset, steps=100, checkpoint_interval=100)
     with pytest.raises(RunLockedError, match=f"in use by process {os.getpid()} on "):
-        trainer.resume(tmp_path / "run", pendulum_dataset)
+        lifecycle.resume(tmp_path / "run", pendulum_dataset)
     trainer.train(first, progress=False)  # releases the lock when done
     assert not (tmp_path / "run" / OWNER).exists()
-    again = trainer.resume(tmp_path / "run", pendulum_dataset)
+    again = lifecycle.resume(tmp_path / "run", pendulum_dataset)
     with pytest.raises(RunLockedError):
-        trainer.resume(tmp_path / "run", pendulum_dataset)
+        lifecycle.resume(tmp_path / "run", pendulum_dataset)
     again.lock.release()
     assert not [p for p in (tmp_path / "run").iterdir() if p.name.endswith(".tmp")]
 
@@ -235,8 +235,8 @@ def test_bad_flags_and_settings_are_refused(tmp_path, pendulum_dataset):
         ({"behavior_cloning": "maybe"}, "must be true or false"),
     ]:
         with pytest.raises(SettingError, match=message):
-            trainer.resolve_agent_config("eabc", "x", {**AGENT, **setting})
-    assert trainer.resolve_agent_config("eabc", "x", {**AGENT, "num_critics": 3.0}).num_critics == 3
+            resolve_agent_config("eabc", "x", {**AGENT, **setting})
+    assert resolve_agent_config("eabc", "x", {**AGENT, "num_critics": 3.0}).num_critics == 3
 
 
 def test_nan_losses_stop_the_run_and_are_reported(tmp_path, pendulum_dataset):

@@ -28,10 +28,10 @@ from eabc.data.loaders import save_npz
 from eabc.deploy import export_onnx
 from eabc.experiments import results, sweep
 from eabc.experiments.spec import expand
-from eabc.training import checkpoint, trainer
+from eabc.training import checkpoint, lifecycle, trainer
 from eabc.training.checkpoint import CheckpointError
-from eabc.training.run import ProgressLostError
-from eabc.training.trainer import TrainConfig
+from eabc.training.config import TrainConfig
+from eabc.training.directory import ProgressLostError
 
 SMALL = dict(
     dataset="pendulum-swingup",
@@ -53,10 +53,10 @@ def finished(tmp_path_factory, pendulum_dataset):
     root = tmp_path_factory.mktemp("finished")
     save_npz(pendulum_dataset, root / "pendulum.npz")  # a file the CLI can load
     config = TrainConfig(**{**SMALL, "dataset": str(root / "pendulum.npz")})
-    trainer.train(trainer.start(config, root / "seed0", AGENT, pendulum_dataset), progress=False)
+    trainer.train(lifecycle.start(config, root / "seed0", AGENT, pendulum_dataset), progress=False)
     other = dataclasses.replace(pendulum_dataset, rewards=pendulum_dataset.rewards + 1.0)
     for name, seed, data in [("seed1", 1, pendulum_dataset), ("other", 0, other)]:
-        run = trainer.start(dataclasses.replace(config, seed=seed), root / name, AGENT, data)
+        run = lifecycle.start(dataclasses.replace(config, seed=seed), root / name, AGENT, data)
         run.lock.release()
         checkpoint.save(run.run_dir, run.state, run.algorithm.state_layout, run.identity)
     return root
@@ -83,9 +83,9 @@ def test_another_runs_checkpoint_is_refused_by_every_reader(
         rf"but .*run/config.json is run {mine} \(td3bc, seed 0, .*differ in run_id, seed\)"
     )
     with pytest.raises(CheckpointError, match=message):
-        trainer.resume(run_dir, pendulum_dataset)  # eabc train --resume
+        lifecycle.resume(run_dir, pendulum_dataset)  # eabc train --resume
     with pytest.raises(CheckpointError, match=message):
-        trainer.resume(run_dir, pendulum_dataset, lock=False)  # eabc evaluate
+        lifecycle.resume(run_dir, pendulum_dataset, lock=False)  # eabc evaluate
     with pytest.raises(CheckpointError, match=message):
         load_policy(run_dir)
     with pytest.raises(CheckpointError, match=message):
@@ -105,7 +105,7 @@ def test_another_runs_checkpoint_is_refused_by_every_reader(
     shutil.copy(finished / "seed0" / checkpoint.CHECKPOINT, run_dir)
     shutil.copy(finished / "seed1" / checkpoint.CONFIG, run_dir)
     with pytest.raises(CheckpointError, match=f"belongs to run {mine} .* is run {theirs}"):
-        trainer.resume(run_dir, pendulum_dataset)
+        lifecycle.resume(run_dir, pendulum_dataset)
 
 
 def test_checkpoints_from_before_the_identity_load_with_a_warning(
@@ -123,13 +123,13 @@ def test_checkpoints_from_before_the_identity_load_with_a_warning(
     checkpoint.save_json(run_dir / checkpoint.CONFIG, config)
     capsys.readouterr()
 
-    assert trainer.resume(run_dir, pendulum_dataset, lock=False).step == 300
+    assert lifecycle.resume(run_dir, pendulum_dataset, lock=False).step == 300
     load_policy(run_dir)
     warnings = capsys.readouterr().err.strip().splitlines()
     assert len(warnings) == 2 and all("does not record which run wrote it" in w for w in warnings)
     assert results.read_run(run_dir)[0]["status"] == "done"
 
-    run = trainer.resume(run_dir, pendulum_dataset)  # for training: the run gets an id
+    run = lifecycle.resume(run_dir, pendulum_dataset)  # for training: the run gets an id
     run.lock.release()
     assert config_of(run_dir)["run_id"] == run.identity["run_id"]
 
@@ -151,15 +151,15 @@ def test_a_finished_run_without_its_checkpoint_is_refused_not_retrained(
     # Its log alone shows it finished; a log past the first checkpoint shows progress.
     (run_dir / "summary.json").unlink()
     with pytest.raises(ProgressLostError, match="finished \\(log.csv reaches step 300 of 300\\)"):
-        trainer.resume(run_dir, pendulum_dataset)
+        lifecycle.resume(run_dir, pendulum_dataset)
     lines = kept["log.csv"].decode().splitlines(keepends=True)
     (run_dir / "log.csv").write_text("".join(lines[:3]))  # rows at steps 100 and 200
     with pytest.raises(
         ProgressLostError, match="trained to step 200 \\(log.csv\\), past its first"
     ):
-        trainer.resume(run_dir, pendulum_dataset)
+        lifecycle.resume(run_dir, pendulum_dataset)
     (run_dir / "log.csv").write_text("".join(lines[:2]))  # killed before its first checkpoint
-    trainer.resume(run_dir, pendulum_dataset).lock.release()
+    lifecycle.resume(run_dir, pendulum_dataset).lock.release()
     assert not (run_dir / "log.csv").exists()  # started again, as before
 
     # --restart asks for it, and only where the checkpoint is missing.
@@ -168,7 +168,7 @@ def test_a_finished_run_without_its_checkpoint_is_refused_not_retrained(
     with pytest.raises(SystemExit, match="--restart trains a run again only when its checkpoint"):
         main(["train", "--resume", str(run_dir), "--restart", "--no-progress"])
     (run_dir / checkpoint.CHECKPOINT).unlink()
-    run = trainer.resume(run_dir, pendulum_dataset, restart=True)
+    run = lifecycle.resume(run_dir, pendulum_dataset, restart=True)
     assert run.step == 0 and not (run_dir / "summary.json").exists()
     run.lock.release()
 
@@ -218,7 +218,7 @@ def test_damaged_logs_are_reported_and_rebuilt_from_the_checkpoint(
 
     # The last case's resume: the log is rebuilt from the checkpoint, the summary agrees again.
     (run_dir / "log.csv").unlink()
-    trainer.train(trainer.resume(run_dir, pendulum_dataset), progress=False)
+    trainer.train(lifecycle.resume(run_dir, pendulum_dataset), progress=False)
     assert (
         "run/log.csv is missing: rebuilt its evaluations up to step 300" in capsys.readouterr().err
     )
@@ -240,9 +240,9 @@ def test_temporary_files_of_a_killed_writer_are_removed_by_the_next(
     run_dir = copy(finished, tmp_path)
     for name in (".log.csv.x1y2.tmp", ".checkpoint.msgpack.a9b8.tmp"):
         (run_dir / name).write_bytes(b"half")
-    trainer.resume(run_dir, pendulum_dataset, lock=False)  # a reader leaves them
+    lifecycle.resume(run_dir, pendulum_dataset, lock=False)  # a reader leaves them
     assert len(list(run_dir.glob(".*.tmp"))) == 2
-    trainer.resume(run_dir, pendulum_dataset).lock.release()
+    lifecycle.resume(run_dir, pendulum_dataset).lock.release()
     assert not list(run_dir.glob(".*.tmp"))
 
 
@@ -254,7 +254,7 @@ def test_inputs_that_fail_after_training_are_refused_before_it(
             DatasetError, match="pendulum-swingup: its reference scores .*(equal|finite|order)"
         ):
             data = dataclasses.replace(pendulum_dataset, ref_min_score=low, ref_max_score=high)
-            trainer.start(TrainConfig(**SMALL), tmp_path / "same", AGENT, dataset=data)
+            lifecycle.start(TrainConfig(**SMALL), tmp_path / "same", AGENT, dataset=data)
         assert not (tmp_path / "same").exists(), "nothing made: a fixed file can start afresh"
 
     (tmp_path / "afile").write_text("")
@@ -265,7 +265,7 @@ def test_inputs_that_fail_after_training_are_refused_before_it(
         main(["train", "--cache-dir", str(tmp_path / "afile"), "--run-dir", str(tmp_path / "r")])
     monkeypatch.setenv("EABC_CACHE_DIR", str(tmp_path / "afile"))
     with pytest.raises(ValueError, match=r"\$EABC_CACHE_DIR .*afile is not a directory"):
-        trainer.start(TrainConfig(**SMALL), tmp_path / "env", AGENT, dataset=pendulum_dataset)
+        lifecycle.start(TrainConfig(**SMALL), tmp_path / "env", AGENT, dataset=pendulum_dataset)
 
 
 @pytest.mark.parametrize(
@@ -363,7 +363,7 @@ def test_a_log_with_a_repeated_row_or_one_past_the_end_is_damaged_and_rebuilt(
     (run_dir / "log.csv").write_text("".join(damage(_log_lines(run_dir))))
     row, _ = results.read_run(run_dir)
     assert row["status"] == "damaged" and why in row["config"]
-    trainer.train(trainer.resume(run_dir, pendulum_dataset), progress=False)
+    trainer.train(lifecycle.resume(run_dir, pendulum_dataset), progress=False)
     assert results.read_run(run_dir)[0]["status"] == "done"
 
 
@@ -399,7 +399,7 @@ def test_one_reference_score_without_the_other_is_refused_before_training(
     for low, high in [(-1200.0, None), (None, -130.0)]:
         data = dataclasses.replace(pendulum_dataset, ref_min_score=low, ref_max_score=high)
         with pytest.raises(DatasetError, match="has ref_m.._score but no ref_m.._score"):
-            trainer.start(TrainConfig(**SMALL), tmp_path / "one", AGENT, dataset=data)
+            lifecycle.start(TrainConfig(**SMALL), tmp_path / "one", AGENT, dataset=data)
         assert not (tmp_path / "one").exists()
 
 

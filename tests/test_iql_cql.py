@@ -15,7 +15,8 @@ from learning import MARGIN, late_gain
 from eabc import networks
 from eabc.agents import cql, get_algorithm, iql, sac
 from eabc.data.dataset import Dataset
-from eabc.training import trainer
+from eabc.training import lifecycle, trainer
+from eabc.training.config import TrainConfig, resolve_agent_config
 
 iql_update = quick_jit(iql.update)
 cql_update = quick_jit(cql.update)
@@ -129,14 +130,12 @@ def test_iql_actor_learning_rate_decays_on_a_cosine_to_zero(batch):
 
 
 def test_total_steps_is_filled_from_the_run_length(tmp_path, pendulum_dataset, quick_chunks):
-    assert trainer.resolve_agent_config("iql", "x", {}, steps=5000).total_steps == 5000
-    assert trainer.resolve_agent_config("iql", "x", {"total_steps": 7}, steps=5000).total_steps == 7
-    assert trainer.resolve_agent_config("iql", "x", {}).total_steps is None
-    assert (
-        trainer.resolve_agent_config("td3bc", "x", {}, steps=5000) == get_algorithm("td3bc").preset
-    )
+    assert resolve_agent_config("iql", "x", {}, steps=5000).total_steps == 5000
+    assert resolve_agent_config("iql", "x", {"total_steps": 7}, steps=5000).total_steps == 7
+    assert resolve_agent_config("iql", "x", {}).total_steps is None
+    assert resolve_agent_config("td3bc", "x", {}, steps=5000) == get_algorithm("td3bc").preset
 
-    config = trainer.TrainConfig(
+    config = TrainConfig(
         algo="iql",
         steps=200,
         log_interval=100,
@@ -145,12 +144,12 @@ def test_total_steps_is_filled_from_the_run_length(tmp_path, pendulum_dataset, q
         eval_episodes=1,
         env="Pendulum-v1",
     )
-    run = trainer.start(config, tmp_path / "iql", {"hidden_dims": (8, 8)}, pendulum_dataset)
+    run = lifecycle.start(config, tmp_path / "iql", {"hidden_dims": (8, 8)}, pendulum_dataset)
     assert run.agent_config.total_steps == 200
     saved = json.loads((tmp_path / "iql" / "config.json").read_text())
     assert saved["agent"]["total_steps"] == 200
     trainer.train(run, progress=False)
-    assert trainer.resume(tmp_path / "iql", pendulum_dataset).agent_config.total_steps == 200
+    assert lifecycle.resume(tmp_path / "iql", pendulum_dataset).agent_config.total_steps == 200
 
 
 def episodes_dataset(episode_rewards):
@@ -191,9 +190,9 @@ def test_trainer_trains_on_the_preprocessed_data(tmp_path, pendulum_dataset, mon
         raise Stop
 
     monkeypatch.setattr(trainer, "device_data", capture)
-    config = trainer.TrainConfig(algo=algo, steps=100, log_interval=100, eval_interval=100)
+    config = TrainConfig(algo=algo, steps=100, log_interval=100, eval_interval=100)
     config = dataclasses.replace(config, checkpoint_interval=100, env="Pendulum-v1")
-    run = trainer.start(config, tmp_path / algo, {"hidden_dims": (8, 8)}, pendulum_dataset)
+    run = lifecycle.start(config, tmp_path / algo, {"hidden_dims": (8, 8)}, pendulum_dataset)
     with pytest.raises(Stop):
         trainer.train(run, progress=False)
     returns = pendulum_dataset.episode_returns()

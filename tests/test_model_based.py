@@ -16,7 +16,8 @@ from learning import MARGIN, late_gain
 from eabc import pytree
 from eabc.agents import dynamics, get_algorithm, mopo, morel
 from eabc.agents.common import Batch
-from eabc.training import chunks, trainer
+from eabc.training import chunks, directory, lifecycle, trainer
+from eabc.training.config import TrainConfig, resolve_agent_config
 
 SMALL = {"model_members": 3, "model_elites": 2, "model_hidden_dims": (8, 8), "hidden_dims": (8, 8)}
 # The refill tests' one setting, so that the update and the rollout compile once for them all.
@@ -278,9 +279,9 @@ def test_every_step_reports_the_latest_refills_metrics_so_the_log_shows_their_va
 
 
 def test_per_task_settings_are_resolved_from_the_dataset_name():
-    config = trainer.resolve_agent_config("mopo", "hopper-medium", {})
+    config = resolve_agent_config("mopo", "hopper-medium", {})
     assert (config.rollout_length, config.penalty_coeff, config.termination) == (5, 5.0, "hopper")
-    config = trainer.resolve_agent_config("mopo", "halfcheetah-medium", {"penalty_coeff": 0.3})
+    config = resolve_agent_config("mopo", "halfcheetah-medium", {"penalty_coeff": 0.3})
     assert (config.rollout_length, config.penalty_coeff, config.termination) == (1, 0.3, "none")
     # The official configs' (h, lambda) per task, read from tianheyu927/mopo's
     # examples/config/d4rl/*.py at commit 3d632fc, written out here by hand.
@@ -292,9 +293,9 @@ def test_per_task_settings_are_resolved_from_the_dataset_name():
         "walker2d-medium-replay": (1, 1.0), "walker2d-medium-expert": (1, 2.0),
     }  # fmt: skip
     for name, expected in official.items():
-        config = trainer.resolve_agent_config("mopo", name, {})
+        config = resolve_agent_config("mopo", name, {})
         assert (config.rollout_length, config.penalty_coeff) == expected, name
-    config = trainer.resolve_agent_config("morel", "walker2d-medium", {})
+    config = resolve_agent_config("morel", "walker2d-medium", {})
     assert (config.rollout_length, config.penalty_coeff, config.termination) == (5, 0.0, "walker2d")
     assert get_algorithm("mopo").gaussian_actor and get_algorithm("morel").gaussian_actor
 
@@ -314,8 +315,8 @@ RUN = {**LEARNING, "hidden_dims": (8, 8), "model_max_epochs": 2}
 """The run tests' settings: 8-8 SAC on a model of 2 epochs."""
 
 
-def run_config(algo: str, steps: int) -> trainer.TrainConfig:
-    return trainer.TrainConfig(algo=algo, steps=steps, log_interval=100, eval_interval=steps,
+def run_config(algo: str, steps: int) -> TrainConfig:
+    return TrainConfig(algo=algo, steps=steps, log_interval=100, eval_interval=steps,
                                checkpoint_interval=100, eval_episodes=1, env="Pendulum-v1")  # fmt: skip
 
 
@@ -326,7 +327,7 @@ def morel_run(tmp_path_factory, pendulum_dataset):
     ``quick_chunks`` gives a test)."""
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv(chunks.FAST_COMPILE_ENV, "1")
-        run = trainer.start(
+        run = lifecycle.start(
             run_config("morel", 200), tmp_path_factory.mktemp("morel") / "m", RUN, pendulum_dataset
         )
         fitted = jax.device_get((run.state["agent"].model, run.state["agent"].halt_threshold))
@@ -336,13 +337,13 @@ def morel_run(tmp_path_factory, pendulum_dataset):
 
 def test_the_trained_model_is_saved_with_the_run_and_resumed(morel_run, pendulum_dataset):
     run, (model, threshold) = morel_run
-    assert not (run.run_dir / trainer.PRETRAIN_PROGRESS).exists()  # dropped once saved
+    assert not (run.run_dir / directory.PRETRAIN_PROGRESS).exists()  # dropped once saved
     assert np.isfinite(float(threshold))
     fresh = mopo.init(
         jax.random.PRNGKey(0), pendulum_dataset.obs_dim, pendulum_dataset.act_dim, run.agent_config
     )
     assert not np.allclose(model["net"]["w1"], fresh.model["net"]["w1"])
-    resumed = trainer.resume(run.run_dir, pendulum_dataset, lock=False)
+    resumed = lifecycle.resume(run.run_dir, pendulum_dataset, lock=False)
     assert resumed.step == 200
     jax.tree.map(np.testing.assert_array_equal, resumed.state["agent"].model, model)
     np.testing.assert_array_equal(resumed.state["agent"].halt_threshold, threshold)
@@ -354,14 +355,14 @@ def test_a_run_killed_after_its_model_fit_resumes_with_the_fitted_model(
     """The fit can take an hour on hopper: start() checkpoints it at step 0, so a run killed
     before its first training checkpoint does not fit again, and trains as an uninterrupted one."""
     config = run_config("mopo", 100)
-    run = trainer.start(config, tmp_path / "killed", RUN, pendulum_dataset)
+    run = lifecycle.start(config, tmp_path / "killed", RUN, pendulum_dataset)
     fitted = np.asarray(run.state["agent"].model["net"]["w1"])
     run.lock.release()  # killed here, before any training step
-    resumed = trainer.resume(tmp_path / "killed", pendulum_dataset)
+    resumed = lifecycle.resume(tmp_path / "killed", pendulum_dataset)
     assert resumed.step == 0
     np.testing.assert_array_equal(resumed.state["agent"].model["net"]["w1"], fitted)
     trainer.train(resumed, progress=False)
-    whole = trainer.start(config, tmp_path / "whole", RUN, pendulum_dataset)
+    whole = lifecycle.start(config, tmp_path / "whole", RUN, pendulum_dataset)
     trainer.train(whole, progress=False)
     for name in ("log.csv", "summary.json"):
         killed_rows = (tmp_path / "killed" / name).read_text().splitlines()
@@ -388,17 +389,17 @@ def test_a_run_killed_during_its_model_fit_continues_the_fit(
 
     monkeypatch.setattr(mopo, "_log", kill_after_first_epoch)
     with pytest.raises(Killed):
-        trainer.start(run_config("morel", 100), tmp_path / "killed", RUN, pendulum_dataset)
+        lifecycle.start(run_config("morel", 100), tmp_path / "killed", RUN, pendulum_dataset)
     monkeypatch.undo()
     killed = tmp_path / "killed"
-    assert (killed / "config.json").exists() and (killed / trainer.PRETRAIN_PROGRESS).exists()
+    assert (killed / "config.json").exists() and (killed / directory.PRETRAIN_PROGRESS).exists()
     assert not (killed / "checkpoint.msgpack").exists()
     capsys.readouterr()
-    resumed = trainer.resume(killed, pendulum_dataset)
+    resumed = lifecycle.resume(killed, pendulum_dataset)
     err = capsys.readouterr().err
     assert "continuing the fit after epoch 1" in err
     assert "dynamics epoch 2:" in err and "dynamics epoch 1:" not in err
-    assert resumed.step == 0 and not (killed / trainer.PRETRAIN_PROGRESS).exists()
+    assert resumed.step == 0 and not (killed / directory.PRETRAIN_PROGRESS).exists()
     model, threshold = morel_run[1]  # a run of the same seed and model settings, not killed
     jax.tree.map(np.testing.assert_array_equal, resumed.state["agent"].model, model)
     np.testing.assert_array_equal(resumed.state["agent"].halt_threshold, threshold)

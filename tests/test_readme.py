@@ -18,7 +18,7 @@ from eabc.cli.experiments import sweep_spec
 from eabc.cli.train import Train, train_plan
 from eabc.data import generate
 from eabc.experiments.spec import expand
-from eabc.training import trainer
+from eabc.training.config import resolve_agent_config
 
 ROOT = Path(__file__).resolve().parent.parent
 DOCUMENTS = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
@@ -96,7 +96,7 @@ def test_a_documented_command_passes_its_checks(argv, tmp_path, monkeypatch, cap
             train_plan(cmd)  # the --dry-run's checks: settings resolved for the dataset
         else:  # the reader's own file or Minari id: the settings resolve for its name
             overrides = {k: v for k, v in vars(cmd.agent).items() if v is not None}
-            trainer.resolve_agent_config(
+            resolve_agent_config(
                 config.algo, Path(config.dataset).name, overrides | cli.parse_settings(cmd.set)
             )
     elif isinstance(cmd, cli.Sweep) and (cmd.spec is None or Path(cmd.spec).exists()):

@@ -17,8 +17,8 @@ from learning import MARGIN, late_gain
 from eabc.agents import get_algorithm, rebrac
 from eabc.agents.common import Batch, BatchWithNextActions
 from eabc.data.dataset import Dataset, DatasetError, Normalizer
-from eabc.training import trainer
 from eabc.training.chunks import data_next_actions, device_data, next_action_known
+from eabc.training.config import TrainConfig, resolve_agent_config
 
 K = 3  # more critics than ReBRAC's 2, so that the tests see the minimum over all of them
 MAX_ACTION = 2.0
@@ -221,15 +221,15 @@ def test_networks_are_the_papers():
     ],
 )
 def test_table_11_betas_resolve_from_the_dataset_name(name, betas):
-    config = trainer.resolve_agent_config("rebrac", name, {})
+    config = resolve_agent_config("rebrac", name, {})
     assert (config.actor_bc_weight, config.critic_bc_weight) == betas
 
 
 def test_a_beta_the_user_sets_is_kept():
-    config = trainer.resolve_agent_config("rebrac", "hopper-medium", {"actor_bc_weight": 0.5})
+    config = resolve_agent_config("rebrac", "hopper-medium", {"actor_bc_weight": 0.5})
     assert (config.actor_bc_weight, config.critic_bc_weight) == (0.5, 0.001)
     both = {"actor_bc_weight": 0.2, "critic_bc_weight": 0.0}
-    config = trainer.resolve_agent_config("rebrac", "pendulum-swingup", both)
+    config = resolve_agent_config("rebrac", "pendulum-swingup", both)
     assert (config.actor_bc_weight, config.critic_bc_weight) == (0.2, 0.0)
     assert len(rebrac.BC_WEIGHTS) == 15
 
@@ -237,16 +237,16 @@ def test_a_beta_the_user_sets_is_kept():
 def test_a_dataset_outside_table_11_needs_both_betas():
     for given in ({}, {"actor_bc_weight": 0.1}):
         with pytest.raises(ValueError) as error:
-            trainer.resolve_agent_config("rebrac", "pendulum-swingup", given)
+            resolve_agent_config("rebrac", "pendulum-swingup", given)
         message = str(error.value)
         assert "\n" not in message and "pendulum-swingup" in message
         assert "--set actor_bc_weight=B1 critic_bc_weight=B2" in message
 
 
 def test_rebrac_trains_with_batch_1024_unless_the_user_sets_one():
-    assert trainer.TrainConfig(algo="rebrac").batch_size == 1024
-    assert trainer.TrainConfig(algo="td3bc").batch_size == 256
-    assert trainer.TrainConfig(algo="rebrac", batch_size=64).batch_size == 64
+    assert TrainConfig(algo="rebrac").batch_size == 1024
+    assert TrainConfig(algo="td3bc").batch_size == 256
+    assert TrainConfig(algo="rebrac", batch_size=64).batch_size == 64
 
 
 def test_next_actions_follow_the_episode_and_rows_without_one_are_dropped():

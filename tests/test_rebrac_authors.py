@@ -13,7 +13,8 @@ import pytest
 
 from eabc import networks
 from eabc.agents import eabc, get_algorithm, rebrac, td3_core
-from eabc.training import trainer
+from eabc.training import lifecycle
+from eabc.training.config import TrainConfig, resolve_agent_config
 
 OBS, ACT = 11, 3
 
@@ -41,13 +42,13 @@ TABLE_11 = {
 
 @pytest.mark.parametrize(("name", "betas"), sorted(TABLE_11.items()))
 def test_betas_per_dataset_are_table_11s(name, betas):
-    config = trainer.resolve_agent_config("rebrac", name, {})
+    config = resolve_agent_config("rebrac", name, {})
     assert (config.actor_bc_weight, config.critic_bc_weight) == betas
 
 
 def _start(tmp_path, dataset, algo, overrides):
-    config = trainer.TrainConfig(dataset="pendulum-swingup", algo=algo, env="Pendulum-v1")
-    run = trainer.start(config, tmp_path / algo, {"hidden_dims": (8, 8), **overrides}, dataset)
+    config = TrainConfig(dataset="pendulum-swingup", algo=algo, env="Pendulum-v1")
+    run = lifecycle.start(config, tmp_path / algo, {"hidden_dims": (8, 8), **overrides}, dataset)
     run.lock.release()
     return run
 

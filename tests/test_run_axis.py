@@ -18,7 +18,8 @@ from eabc.data.dataset import Normalizer
 from eabc.data.loaders import save_npz
 from eabc.experiments import sweep
 from eabc.experiments.spec import RunSpec, expand, groups, job_name
-from eabc.training import chunks, trainer
+from eabc.training import chunks, lifecycle, trainer
+from eabc.training.config import TrainConfig
 
 TRAIN = dict(
     steps=300,
@@ -60,7 +61,7 @@ def test_three_different_runs_in_one_program_equal_each_trained_alone(tmp_path, 
     for run, summary in zip(runs, together):
         (alone,) = sweep.execute([run.to_json()], str(tmp_path / "alone"))
         got, expected = (
-            trainer.resume(root / "runs" / run.run_id, lock=False)
+            lifecycle.resume(root / "runs" / run.run_id, lock=False)
             for root in (tmp_path / "together", tmp_path / "alone")
         )
         assert got.step == expected.step == 300
@@ -69,7 +70,7 @@ def test_three_different_runs_in_one_program_equal_each_trained_alone(tmp_path, 
         assert summary["dataset"] == alone["dataset"] == Path(run.dataset).stem
         np.testing.assert_allclose(summary["final_score"], alone["final_score"], atol=0.5)
         assert summary["q_range"] == alone["q_range"]  # each run's own data's value range
-    short = trainer.resume(tmp_path / "together" / "runs" / runs[1].run_id, lock=False)
+    short = lifecycle.resume(tmp_path / "together" / "runs" / runs[1].run_id, lock=False)
     assert short.agent_config.confidence_level == 0.25 and short.agent_config.alpha == 1.0
     assert short.dataset.size == 6_000
 
@@ -129,7 +130,7 @@ def _fake_run(name="a", algo="eabc", obs_dim=3, max_action=2.0, **settings):
     return SimpleNamespace(
         algorithm=algorithm,
         agent_config=dataclasses.replace(algorithm.preset, **settings),
-        config=trainer.TrainConfig(dataset=f"{name}.npz", algo=algo, seed=len(name)),
+        config=TrainConfig(dataset=f"{name}.npz", algo=algo, seed=len(name)),
         dataset=SimpleNamespace(obs_dim=obs_dim, act_dim=1),
         max_action=max_action,
         run_dir=Path(name),

@@ -20,9 +20,9 @@ import pytest
 from eabc import load_policy
 from eabc.cli import main
 from eabc.experiments import results
-from eabc.training import checkpoint, trainer
+from eabc.training import checkpoint, lifecycle
+from eabc.training.config import TrainConfig
 from eabc.training.run_config import ConfigError
-from eabc.training.trainer import TrainConfig
 
 
 @pytest.fixture(scope="module")
@@ -37,7 +37,7 @@ def started(tmp_path_factory):
     config = TrainConfig(dataset=str(root / "tiny.npz"), algo="td3bc", steps=200,
                          log_interval=100, eval_interval=100, checkpoint_interval=100,
                          eval_episodes=1, env="Pendulum-v1")  # fmt: skip
-    run = trainer.start(config, root / "run", {"hidden_dims": (32, 32)})
+    run = lifecycle.start(config, root / "run", {"hidden_dims": (32, 32)})
     run.lock.release()
     checkpoint.save(run.run_dir, run.state, run.algorithm.state_layout, run.identity)
     return root / "run"
@@ -137,7 +137,7 @@ def test_configs_of_earlier_versions_keep_loading(started, tmp_path, capsys):
     run_dir = edited(started, tmp_path, old)
     raw = checkpoint.load_raw(run_dir)
     checkpoint.save(run_dir, {k: v for k, v in raw.items() if k != checkpoint.IDENTITY})
-    assert trainer.resume(run_dir, lock=False).step == 0
+    assert lifecycle.resume(run_dir, lock=False).step == 0
     load_policy(run_dir)
     assert results.read_run(run_dir)[0]["status"] == "partial"
 
@@ -149,10 +149,10 @@ def test_a_missing_train_setting_reads_as_its_default_and_a_missing_key_is_named
     policy's readers."""
     run_dir = edited(started, tmp_path, lambda c: without(c, "train", "batch_size"))
     with pytest.raises(checkpoint.CheckpointError, match="lacks train.batch_size: put back"):
-        trainer.resume(run_dir, lock=False)
+        lifecycle.resume(run_dir, lock=False)
     raw = checkpoint.load_raw(run_dir)  # an older eabc's checkpoint: nothing to compare with
     checkpoint.save(run_dir, {k: v for k, v in raw.items() if k != checkpoint.IDENTITY})
-    assert trainer.resume(run_dir, lock=False).config.batch_size == 256  # td3bc's default
+    assert lifecycle.resume(run_dir, lock=False).config.batch_size == 256  # td3bc's default
 
     shutil.rmtree(tmp_path / "root")
     run_id = json.loads((started / "config.json").read_text())["run_id"]
@@ -162,6 +162,6 @@ def test_a_missing_train_setting_reads_as_its_default_and_a_missing_key_is_named
 
     shutil.rmtree(tmp_path / "root")
     run_dir = edited(started, tmp_path, lambda c: without(c, "max_action"))
-    assert trainer.resume(run_dir, lock=False).step == 0
+    assert lifecycle.resume(run_dir, lock=False).step == 0
     with pytest.raises(ConfigError, match="config.json: max_action is missing"):
         load_policy(run_dir)

@@ -17,9 +17,9 @@ from handcalc import ACT, OBS, make_batch
 
 from eabc.agents import bc_weights, eabc, get_algorithm, rebrac, wpc
 from eabc.agents.common import Batch, BatchWithNextActions
-from eabc.training import chunks, trainer
+from eabc.training import chunks, lifecycle, trainer
 from eabc.training.chunks import FAST_COMPILE_OPTIONS, summarize_metrics
-from eabc.training.trainer import TrainConfig
+from eabc.training.config import TrainConfig
 
 MAX_ACTION = 1.5
 TINY = {"hidden_dims": (8, 8)}
@@ -267,7 +267,7 @@ def test_the_trainer_cuts_chunks_anywhere_and_equals_the_step_by_step_loop(
                          checkpoint_interval=9 * 3, eval_episodes=1, env="Pendulum-v1", batch_size=8)  # fmt: skip
     agent = {"num_critics": 3, "confidence_level": 0.5, "hidden_dims": (8, 8)}
     runs = [
-        trainer.start(dataclasses.replace(config, seed=s), tmp_path / f"s{s}", agent, dataset=pendulum_dataset)
+        lifecycle.start(dataclasses.replace(config, seed=s), tmp_path / f"s{s}", agent, dataset=pendulum_dataset)
         for s in (0, 1)
     ]  # fmt: skip
     starts = [(run.state["agent"], run.state["key"]) for run in runs]

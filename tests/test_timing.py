@@ -16,7 +16,8 @@ from eabc.cli import COMMANDS, GROUPS, main
 from eabc.data import generate
 from eabc.data.loaders import save_npz
 from eabc.experiments import tables
-from eabc.training import trainer
+from eabc.training import lifecycle, trainer
+from eabc.training.config import TrainConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -126,11 +127,11 @@ def test_making_a_dataset_says_what_and_how_long_in_a_log(tmp_path, capfd, monke
 
 def test_training_says_what_and_how_long_in_a_log(tmp_path, capfd, pendulum_dataset, monkeypatch):
     monkeypatch.setattr(progress, "LOG_SECONDS", 0.0)
-    config = trainer.TrainConfig(
+    config = TrainConfig(
         dataset="pendulum", algo="td3bc", steps=200, eval_interval=200, eval_episodes=1,
         log_interval=100, checkpoint_interval=200, env="Pendulum-v1",
     )  # fmt: skip
-    run = trainer.start(config, tmp_path / "run", {"hidden_dims": (32, 32)}, pendulum_dataset)
+    run = lifecycle.start(config, tmp_path / "run", {"hidden_dims": (32, 32)}, pendulum_dataset)
     capfd.readouterr()
     trainer.train(run, progress=True)
     err = capfd.readouterr().err
@@ -139,7 +140,7 @@ def test_training_says_what_and_how_long_in_a_log(tmp_path, capfd, pendulum_data
     assert f"{what}: 100/200 steps (50%)" in err
     assert f"{what}: 200/200 steps in " in err
     assert "\r" not in err
-    trainer.train(trainer.resume(tmp_path / "run", pendulum_dataset), progress=False)
+    trainer.train(lifecycle.resume(tmp_path / "run", pendulum_dataset), progress=False)
     assert capfd.readouterr().err == ""  # --no-progress: silent
 
 

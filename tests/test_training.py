@@ -13,8 +13,8 @@ import pytest
 from eabc import load_policy
 from eabc.agents import eabc, get_algorithm
 from eabc.experiments import results
-from eabc.training import checkpoint, chunks, health, provenance, trainer
-from eabc.training.trainer import TrainConfig
+from eabc.training import checkpoint, chunks, health, lifecycle, provenance, trainer
+from eabc.training.config import FINAL_EVALUATIONS, TrainConfig
 
 SMALL = dict(
     dataset="pendulum-swingup",
@@ -41,7 +41,7 @@ def assert_same(a, b):
 
 def start(tmp_path, name, dataset, **overrides):
     config = TrainConfig(**{**SMALL, **overrides})
-    return trainer.start(config, tmp_path / name, AGENT, dataset=dataset)
+    return lifecycle.start(config, tmp_path / name, AGENT, dataset=dataset)
 
 
 def test_same_seed_same_result_and_other_seed_differs(tmp_path, pendulum_dataset):
@@ -78,7 +78,7 @@ def test_killed_and_resumed_run_ends_exactly_like_an_uninterrupted_one(
         trainer.train(killed, progress=False)
     monkeypatch.undo()
 
-    resumed = trainer.resume(tmp_path / "killed", dataset=pendulum_dataset)
+    resumed = lifecycle.resume(tmp_path / "killed", dataset=pendulum_dataset)
     assert resumed.step == 400
     resumed_summary = trainer.train(resumed, progress=False)
     assert_same(params(straight), params(resumed))
@@ -89,7 +89,7 @@ def test_killed_and_resumed_run_ends_exactly_like_an_uninterrupted_one(
     assert resumed_summary["final_score"] == summary["final_score"]
     # Fewer than 10 evaluations: the final score is the mean of all of them, and says so.
     evaluations = sorted(int(s) for s in straight.state["evaluations"])
-    assert 0 < len(evaluations) < trainer.FINAL_EVALUATIONS
+    assert 0 < len(evaluations) < FINAL_EVALUATIONS
     assert summary["final_score_window"] == (
         f"all {len(evaluations)} evaluations (fewer than 10; steps {evaluations[0]:,}-"
         f"{evaluations[-1]:,})"
@@ -144,7 +144,7 @@ def test_learning_lifts_the_score_well_above_the_untrained_policy(tmp_path, pend
             "eval_episodes": 5,
         }
     )
-    run = trainer.start(config, tmp_path / "learn", AGENT, dataset=pendulum_dataset)
+    run = lifecycle.start(config, tmp_path / "learn", AGENT, dataset=pendulum_dataset)
     untrained = trainer.evaluate(run)["score"]
     summary = trainer.train(run, progress=False)
     last = run.state["evaluations"]["3000"]["score"]
@@ -222,7 +222,7 @@ def test_tensorboard_keeps_every_point_of_log_csv_through_resumes(
     resuming a finished run keeps its last one; the run's settings are in the HParams tab."""
     from tensorboard.plugins.hparams import plugin_data_pb2  # noqa: PLC0415
 
-    run = trainer.start(
+    run = lifecycle.start(
         TrainConfig(**{**SMALL, "algo": "bc", "steps": 400, "eval_interval": 100}),
         tmp_path / "run",
         {"hidden_dims": (32, 32)},
@@ -240,9 +240,9 @@ def test_tensorboard_keeps_every_point_of_log_csv_through_resumes(
         trainer.train(run, progress=False)
     monkeypatch.undo()
     assert [p[0] for p in _log_points(tmp_path / "run")["score"]] == [100, 200, 300]
-    trainer.train(trainer.resume(tmp_path / "run", dataset=pendulum_dataset), progress=False)
+    trainer.train(lifecycle.resume(tmp_path / "run", dataset=pendulum_dataset), progress=False)
     assert_tensorboard_equals_log(tmp_path / "run")  # step 200, the checkpoint, included
-    trainer.train(trainer.resume(tmp_path / "run", dataset=pendulum_dataset), progress=False)
+    trainer.train(lifecycle.resume(tmp_path / "run", dataset=pendulum_dataset), progress=False)
     assert_tensorboard_equals_log(tmp_path / "run")  # step 400, the final point, kept
 
     _, events = _tensorboard_points(tmp_path / "run")
@@ -255,7 +255,7 @@ def test_tensorboard_keeps_every_point_of_log_csv_through_resumes(
 def test_the_fast_compiled_init_gives_the_default_compiled_parameters_bit_for_bit(algo):
     algorithm = get_algorithm(algo)
     key = jax.random.PRNGKey(7)
-    fast = trainer._init_agent(algorithm.init, key, 11, 3, algorithm.preset)
+    fast = lifecycle.init_agent(algorithm.init, key, 11, 3, algorithm.preset)
     default = jax.jit(lambda k: algorithm.init(k, 11, 3, algorithm.preset))(key)
     for a, b in zip(jax.tree.leaves(fast), jax.tree.leaves(default), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

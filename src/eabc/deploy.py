@@ -18,7 +18,7 @@ import numpy as np
 
 from eabc import pytree
 from eabc.training import checkpoint
-from eabc.training.run import read_checkpoint
+from eabc.training.directory import read_checkpoint
 
 OPSET = 17
 PRODUCER_MARK = b"\x12\x04eabc"

@@ -13,7 +13,7 @@ import numpy as np
 from eabc import pytree
 from eabc.data.dataset import Normalizer
 from eabc.evaluation import Policy
-from eabc.training.run import read_checkpoint
+from eabc.training.directory import read_checkpoint
 
 
 def load_policy(run_dir: str | Path) -> Policy:

@@ -60,8 +60,8 @@ from eabc.cli.train import (
     run_train,
     sac_agent_config,
 )
+from eabc.training.config import TrainConfig
 from eabc.training.online import SACTrainConfig
-from eabc.training.trainer import TrainConfig
 
 __all__ = [
     "SWEEP_PRESETS", "DataExport", "DataInfo", "DataList", "DataMake", "Evaluate", "ExportPolicy",

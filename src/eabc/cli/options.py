@@ -15,8 +15,8 @@ from typing import Annotated
 import tyro
 
 from eabc import ranges
+from eabc.training.config import TrainConfig
 from eabc.training.online import SACTrainConfig
-from eabc.training.trainer import TrainConfig
 
 
 def _parsed_unchecked(config_class: type) -> type:

@@ -143,7 +143,7 @@ class ExportPolicy:
 
 
 def run_train(cmd: Train) -> dict:
-    from eabc.training import trainer  # noqa: PLC0415
+    from eabc.training import lifecycle, trainer  # noqa: PLC0415
 
     if cmd.dry_run:
         plan = train_plan(cmd)
@@ -155,10 +155,10 @@ def run_train(cmd: Train) -> dict:
 
     def start():
         overrides = dataclasses.asdict(cmd.agent) | parse_settings(cmd.set)
-        return trainer.start(cmd.config, default_run_dir(cmd), overrides)
+        return lifecycle.start(cmd.config, default_run_dir(cmd), overrides)
 
     def resume(run_dir):
-        run = trainer.resume(run_dir, restart=cmd.restart)
+        run = lifecycle.resume(run_dir, restart=cmd.restart)
         if run.step >= run.config.steps:
             print(f"{run_dir} is finished ({run.step} steps): nothing to train", file=sys.stderr)
         return run
@@ -185,12 +185,16 @@ def train_plan(cmd: Train) -> dict[str, str]:
     from eabc.evaluation import make_env  # noqa: PLC0415
     from eabc.experiments.spec import TRAIN_FIELDS, RunSpec  # noqa: PLC0415
     from eabc.experiments.sweep import estimate_seconds  # noqa: PLC0415
-    from eabc.training import trainer  # noqa: PLC0415
+    from eabc.training import lifecycle, trainer  # noqa: PLC0415
     from eabc.training.checkpoint import CONFIG  # noqa: PLC0415
-    from eabc.training.config import check_evaluation_env, check_memory  # noqa: PLC0415
+    from eabc.training.config import (  # noqa: PLC0415
+        check_evaluation_env,
+        check_memory,
+        resolve_agent_config,
+    )
 
     if cmd.resume:
-        run = trainer.resume(cmd.resume, lock=False)  # reads only
+        run = lifecycle.resume(cmd.resume, lock=False)  # reads only
         config, dataset_name, agent_config = run.config, run.dataset.name, run.agent_config
         what = f"resume {cmd.resume} at step {run.step} of {config.steps}"
         data = f"{dataset_name} ({run.dataset.size:,} transitions), as the run recorded it"
@@ -224,9 +228,7 @@ def train_plan(cmd: Train) -> dict[str, str]:
         overrides = {
             k: v for k, v in dataclasses.asdict(cmd.agent).items() if v is not None
         } | parse_settings(cmd.set)
-        agent_config = trainer.resolve_agent_config(
-            config.algo, dataset_name, overrides, config.steps
-        )
+        agent_config = resolve_agent_config(config.algo, dataset_name, overrides, config.steps)
         size, obs_dim, act_dim = shape
         check_memory(config, agent_config, obs_dim, act_dim, size)  # as start() checks it
         env_id = config.env or env_id or _task_env(dataset_name)
@@ -283,9 +285,9 @@ def _short(value) -> str:
 
 
 def run_evaluate(cmd: Evaluate) -> dict:
-    from eabc.training import trainer  # noqa: PLC0415
+    from eabc.training import lifecycle, trainer  # noqa: PLC0415
 
-    run = trainer.resume(cmd.run_dir, lock=False)  # reads only: a running run can be scored
+    run = lifecycle.resume(cmd.run_dir, lock=False)  # reads only: a running run can be scored
     run.evaluator.episodes = cmd.episodes
     if cmd.seed is not None:
         run.evaluator.seed = cmd.seed

@@ -149,7 +149,7 @@ def reference_scores_problem(low: float | None, high: float | None) -> str | Non
     """Why reference scores (a random and an expert policy's returns) cannot normalise a score,
     or None: both must be finite and the random one below the expert one. Reversed, near-random
     data scored near 100; equal, every score divided by zero. One of them alone is a run's
-    problem, not the data's (:func:`eabc.training.run.start` refuses it: returns only need
+    problem, not the data's (:func:`eabc.training.lifecycle.start` refuses it: returns only need
     neither)."""
     if low is None or high is None:
         return None

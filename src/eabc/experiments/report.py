@@ -105,7 +105,7 @@ def evidence(
     runs: pd.DataFrame, evaluations: pd.DataFrame, table: pd.DataFrame, metric: Metric = SCORE
 ) -> str:
     """What Table 1's cells rest on: evaluations per run score and runs (seeds) per cell."""
-    from eabc.training.trainer import FINAL_EVALUATIONS  # noqa: PLC0415
+    from eabc.training.config import FINAL_EVALUATIONS  # noqa: PLC0415
 
     scored = evaluations[np.isfinite(pd.to_numeric(evaluations[metric.curve], errors="coerce"))]
     counts = scored.groupby("run_id").size().reindex(runs["run_id"], fill_value=0)

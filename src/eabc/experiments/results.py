@@ -45,8 +45,9 @@ from eabc.agents import ALGORITHMS
 from eabc.data import tasks
 from eabc.training import identity, provenance, run_config
 from eabc.training.checkpoint import CHECKPOINT, CONFIG, CheckpointError, file_mode, load_raw
+from eabc.training.config import FINAL_EVALUATIONS
+from eabc.training.directory import SUMMARY
 from eabc.training.logger import LOG, log_problem
-from eabc.training.trainer import FINAL_EVALUATIONS, SUMMARY
 
 DATABASE = "results.sqlite"
 UNUSABLE = ("broken", "damaged")

@@ -35,7 +35,7 @@ import pydantic
 
 from eabc import paths, ranges
 from eabc.agents import get_algorithm, validation
-from eabc.training.trainer import TrainConfig
+from eabc.training.config import TrainConfig
 
 TRAIN_FIELDS = {f.name for f in dataclasses.fields(TrainConfig)} - {"dataset", "algo", "seed"}
 

@@ -28,7 +28,7 @@ from eabc.agents import get_algorithm
 from eabc.data import generate
 from eabc.experiments.spec import RunSpec, differences, groups, is_path, job_name
 from eabc.training import trainer
-from eabc.training.trainer import SUMMARY
+from eabc.training.directory import SUMMARY
 
 RUNS = "runs"
 SPEC = "sweep.json"
@@ -46,7 +46,7 @@ def _status(run: RunSpec, root: Path) -> tuple[str, int, str]:
     """:func:`status` and why, in words (for ``changed`` and ``broken``)."""
     from eabc import pytree  # noqa: PLC0415
     from eabc.training import checkpoint  # noqa: PLC0415
-    from eabc.training.run import lost_progress  # noqa: PLC0415
+    from eabc.training.directory import lost_progress  # noqa: PLC0415
 
     run_dir = root / RUNS / run.run_id
     target = run.train_config().steps
@@ -242,7 +242,7 @@ def execute(job: list[dict], root: str, eval_workers: Any = 0) -> list[dict]:
     evaluation pool shared with other jobs (``eabc.training.eval_pool``; 0 evaluates in this
     process)."""
     from eabc.data.sources import load_dataset  # noqa: PLC0415
-    from eabc.training import checkpoint, trainer  # noqa: PLC0415
+    from eabc.training import checkpoint, lifecycle  # noqa: PLC0415
 
     root_path = Path(root)
     specs = [RunSpec.from_json(j) for j in job]
@@ -259,9 +259,11 @@ def execute(job: list[dict], root: str, eval_workers: Any = 0) -> list[dict]:
         if state in ("changed", "broken"):
             raise ValueError(f"{why}; move that run directory away or use another sweep root")
         if (run_dir / checkpoint.CONFIG).exists():  # from step 0 if it has no checkpoint yet
-            runs.append(trainer.resume(run_dir, dataset, steps=spec.train_config().steps))
+            runs.append(lifecycle.resume(run_dir, dataset, steps=spec.train_config().steps))
         else:
-            runs.append(trainer.start(spec.train_config(), run_dir, dict(spec.overrides), dataset))
+            runs.append(
+                lifecycle.start(spec.train_config(), run_dir, dict(spec.overrides), dataset)
+            )
         identity = {"fingerprint": dataset.fingerprint(), **spec.to_json()}  # steps: the latest
         checkpoint.save_json(
             run_dir / SPEC, {"run_id": spec.run_id, "variant": spec.variant, **identity}

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from eabc.training import run_config
-from eabc.training.checkpoint import CHECKPOINT, CONFIG, IDENTITY, CheckpointError
+from eabc.training.checkpoint import CHECKPOINT, CONFIG, IDENTITY, CheckpointError, save_json
 
 FIELDS = ("run_id", "algo", "seed", "settings", "dataset", "fingerprint")
 """What an identity holds; two identities must agree in every one."""
@@ -55,6 +55,14 @@ def of_config(config: dict) -> dict[str, Any]:
         "dataset": dataset.get("name", train.get("dataset")),
         "fingerprint": dataset.get("fingerprint"),
     }
+
+
+def of_run(run_dir: Path, saved: dict) -> dict[str, Any]:
+    """The run's identity, giving a run from before run ids one (in its config.json) now."""
+    if not saved.get("run_id"):
+        saved = {"run_id": new_run_id(), **saved}
+        save_json(run_dir / CONFIG, saved)
+    return of_config(saved)
 
 
 def checked(raw: dict, run_dir: Path, config: dict, warn: bool = True) -> dict:

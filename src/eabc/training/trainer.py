@@ -1,7 +1,7 @@
 """The offline training loop: compiled chunks of gradient steps between evaluations.
 
-A run is started (:func:`start`) or resumed (:func:`resume`) into a :class:`Run`
-(:mod:`eabc.training.run`, re-exported here); :func:`train` and :func:`train_runs` advance it in
+A run is started or resumed (:mod:`eabc.training.lifecycle`) into a
+:class:`~eabc.training.lifecycle.Run`; :func:`train` and :func:`train_runs` advance it in
 compiled chunks (:mod:`eabc.training.chunks`), and between chunks log, evaluate every
 ``eval_interval`` steps, check the run's health (:mod:`eabc.training.health`) and checkpoint every
 ``checkpoint_interval`` steps, so that ``resume`` continues bit for bit.
@@ -31,11 +31,8 @@ from eabc.training.chunks import (
     train_chunk,
     train_chunk_runs,
 )
-from eabc.training.config import (  # noqa: F401 (the API: trainer.TrainConfig, ...)
-    FINAL_EVALUATIONS,
-    TrainConfig,
-    resolve_agent_config,
-)
+from eabc.training.config import FINAL_EVALUATIONS
+from eabc.training.directory import SUMMARY
 from eabc.training.health import (
     divergence_warning,
     first_divergence,
@@ -43,16 +40,8 @@ from eabc.training.health import (
     non_finite,
     value_range,
 )
+from eabc.training.lifecycle import Run, prepared
 from eabc.training.logger import CURVE, RunLogger, plot_curve
-from eabc.training.run import (  # noqa: F401 (the API: trainer.start, ...)
-    PRETRAIN_PROGRESS,
-    SUMMARY,
-    Run,
-    _init_agent,
-    prepared,
-    resume,
-    start,
-)
 
 
 def estimate_seconds(

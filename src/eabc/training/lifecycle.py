@@ -1,22 +1,16 @@
-"""A training run's life outside the loop: its configuration, its directory, and how it starts,
-resumes and is extended.
+"""Starting and resuming a training run: the :class:`Run` that the loop trains.
 
-:func:`start` makes a run directory (config, dataset fingerprint, initial agent) and returns a
-:class:`Run`; :func:`resume` rebuilds the same :class:`Run` from the directory's checkpoint, so that
-the loop (:mod:`eabc.training.trainer`) continues bit for bit. The agent's settings are the
-algorithm's preset, the user's overrides and what the algorithm resolves against the dataset and
-the run's length (:func:`resolve_agent_config`).
-
-A run directory's results are never thrown away unasked: a run whose checkpoint is gone but whose
-``summary.json`` or ``log.csv`` shows it got past its first checkpoint is refused rather than
-trained again from step 0 (``restart=True`` asks for that), and every checkpoint read is checked
-to be this run's own (:mod:`eabc.training.identity`).
+:func:`start` makes a run directory (config.json with the dataset's fingerprint, the initial agent,
+and the algorithm's pretraining if it has one) and returns a :class:`Run`; :func:`resume` rebuilds
+the same :class:`Run` from the directory's checkpoint (from step 0 if it died before its first),
+so that the loop (:mod:`eabc.training.trainer`) continues bit for bit, and extends it to more
+steps when asked. What the run trains with comes from :mod:`eabc.training.config`; what its
+directory holds, and what may not be thrown away, from :mod:`eabc.training.directory`.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 import shutil
 import sys
@@ -26,12 +20,12 @@ from typing import Any
 import jax
 import numpy as np
 
-from eabc import paths, pytree
-from eabc.agents import Algorithm, get_algorithm, validation
+from eabc import paths, ranges
+from eabc.agents import Algorithm, get_algorithm
 from eabc.data.dataset import Dataset, DatasetError, Normalizer, reference_scores_problem
 from eabc.data.sources import load_dataset
-from eabc.evaluation import Evaluator, check_spaces, make_env
-from eabc.training import checkpoint, identity, logger, rewards, run_config
+from eabc.evaluation import Evaluator, check_spaces
+from eabc.training import checkpoint, directory, identity, logger, rewards, run_config
 from eabc.training.checkpoint import CONFIG
 from eabc.training.chunks import device_data
 from eabc.training.config import (
@@ -43,8 +37,6 @@ from eabc.training.config import (
 )
 from eabc.training.lock import RunLock
 from eabc.training.logger import CURVE, LOG
-
-SUMMARY = "summary.json"
 
 
 @dataclasses.dataclass
@@ -83,7 +75,7 @@ def start(
     """Set up a new run in ``run_dir`` (which must not hold a run already); the run holds the
     directory's writer lock until :func:`train` ends."""
     run_dir = Path(run_dir)
-    _refuse_existing(run_dir)
+    directory.refuse_existing(run_dir)
     config = _absolute_paths(config)
     if config.cache_dir is None and os.environ.get("EABC_CACHE_DIR"):
         check_cache_dir(os.environ["EABC_CACHE_DIR"], "$EABC_CACHE_DIR")
@@ -97,15 +89,15 @@ def start(
     run = _build(run_dir, config, agent_config, dataset, state=None)
     run.lock = RunLock(run_dir).acquire()
     try:
-        _refuse_existing(run_dir)  # again, now that no other writer can be starting here
+        directory.refuse_existing(run_dir)  # again, now that no other writer can be starting here
     except BaseException:
         run.lock.release()
         raise
-    _remove_temporaries(run_dir)
+    directory.remove_temporaries(run_dir)
     saved = {
         "run_id": identity.new_run_id(),
         "train": dataclasses.asdict(config),
-        "agent": dataclasses.asdict(agent_config),
+        "agent": ranges.flat(agent_config),  # a group's settings by their own names
         "dataset": {
             "name": dataset.name,
             "size": dataset.size,
@@ -125,10 +117,6 @@ def start(
             run.lock.release()
             raise
     return run
-
-
-PRETRAIN_PROGRESS = "pretrain.msgpack"
-"""A run's pretraining progress (a model fit, epoch by epoch) until its first checkpoint."""
 
 
 @dataclasses.dataclass
@@ -160,7 +148,7 @@ def _keys(seed: int) -> tuple[jax.Array, jax.Array]:
 def _pretrain(run: Run) -> None:
     """The algorithm's one-off pretraining of a run at step 0 (continuing what a killed run saved
     of it), then the run's first checkpoint: a run killed after it does not pretrain again."""
-    progress = _FileProgress(run.run_dir / PRETRAIN_PROGRESS)
+    progress = _FileProgress(run.run_dir / directory.PRETRAIN_PROGRESS)
     algorithm = run.algorithm
     data = device_data(
         prepared(algorithm, run.dataset, run.config.reward_convention),
@@ -190,14 +178,6 @@ def _absolute_paths(config: TrainConfig) -> TrainConfig:
     return config
 
 
-def _refuse_existing(run_dir: Path) -> None:
-    if (run_dir / CONFIG).exists():
-        raise FileExistsError(
-            f"{run_dir} already holds a run; continue it with `eabc train --resume {run_dir}` or "
-            "choose another --run-dir"
-        )
-
-
 def resume(
     run_dir: str | Path,
     dataset: Dataset | None = None,
@@ -211,7 +191,7 @@ def resume(
     extends the run to that many steps (config.json records the new length).
 
     A run whose checkpoint is missing although it got past its first one (finished, or its log
-    goes further) is refused (:class:`ProgressLostError`) unless ``restart``, which trains it
+    goes further) is refused (:class:`~eabc.training.directory.ProgressLostError`) unless ``restart``, which trains it
     again from step 0, replacing its log.csv and summary.json. Resumed for training, a run's
     log.csv that lacks what its checkpoint holds (deleted, cut short) is rebuilt from the
     checkpoint's evaluation history, and temporary files a killed writer left are removed."""
@@ -219,7 +199,7 @@ def resume(
     held = RunLock(run_dir).acquire() if lock else None
     try:
         if lock:
-            _remove_temporaries(run_dir)
+            directory.remove_temporaries(run_dir)
         run = _resume(run_dir, dataset, write=lock, restart=restart)
         if steps is not None and steps != run.config.steps:
             run = _extend(run, steps)
@@ -243,54 +223,6 @@ def _extend(run: Run, steps: int) -> Run:
     return dataclasses.replace(run, config=dataclasses.replace(run.config, steps=steps))
 
 
-class ProgressLostError(RuntimeError):
-    """A run's checkpoint is gone but its results show progress: resuming would start it again."""
-
-
-def _remove_temporaries(run_dir: Path) -> None:
-    """Temporary files of writes a kill interrupted (``.NAME.XXXX.tmp``, never renamed); only the
-    writer holding the run's lock calls this, so none of them is being written."""
-    for path in Path(run_dir).glob(".*.tmp"):
-        if path.is_file():
-            path.unlink(missing_ok=True)
-
-
-def lost_progress(run_dir: Path, steps: int, checkpoint_interval: int) -> str | None:
-    """What ``run_dir``, which has no checkpoint, has done that training it from step 0 would
-    throw away: finished (``summary.json``, or a log reaching ``steps``) or logged past its first
-    checkpoint (so one was written and is gone); None for a run killed before its first
-    checkpoint, which loses nothing by starting again."""
-    summary_path = run_dir / SUMMARY
-    if summary_path.exists():
-        try:
-            summary = json.loads(paths.read_file(summary_path).decode())
-            done = f"{int(summary['steps'])} of {steps} steps"
-            if summary.get("diverged_step") is not None:
-                done += f", stopped on NaN/inf at step {summary['diverged_step']}"
-        except (OSError, ValueError, KeyError, TypeError):
-            done = f"{SUMMARY} unreadable"
-        return (
-            f"{run_dir} is finished ({done}; {SUMMARY}) but its {checkpoint.CHECKPOINT} is missing"
-        )
-    if not (run_dir / LOG).exists():
-        return None
-    rows, _ = logger.readable_rows(run_dir / LOG)
-    if rows is None:
-        return f"{run_dir}'s {LOG} cannot be read and its {checkpoint.CHECKPOINT} is missing"
-    last = max((int(float(row["step"])) for row in rows), default=0)
-    if last >= steps:
-        return (
-            f"{run_dir} is finished ({LOG} reaches step {last} of {steps}) but its "
-            f"{checkpoint.CHECKPOINT} is missing"
-        )
-    if last > min(checkpoint_interval, steps):
-        return (
-            f"{run_dir} has trained to step {last} ({LOG}), past its first checkpoint, but its "
-            f"{checkpoint.CHECKPOINT} is missing"
-        )
-    return None
-
-
 def _resume(run_dir: Path, dataset: Dataset | None, write: bool, restart: bool = False) -> Run:
     saved = run_config.read(run_dir)  # checked by its schema before anything uses it
     # a run from before the setting trained on r - 1, whatever its algorithm's default now
@@ -302,18 +234,20 @@ def _resume(run_dir: Path, dataset: Dataset | None, write: bool, restart: bool =
             f"one: resume without --restart to continue it"
         )
     lost = (
-        None if has_checkpoint else lost_progress(run_dir, config.steps, config.checkpoint_interval)
+        None
+        if has_checkpoint
+        else directory.lost_progress(run_dir, config.steps, config.checkpoint_interval)
     )
     if lost and not write:
         raise FileNotFoundError(f"{lost}: there is nothing to read")
     if lost and not restart:
-        raise ProgressLostError(
+        raise directory.ProgressLostError(
             f"{lost}; resuming would train it again from step 0 and replace its {LOG} and "
-            f"{SUMMARY}: restore the checkpoint, train in a new --run-dir, or pass --restart to "
+            f"{directory.SUMMARY}: restore the checkpoint, train in a new --run-dir, or pass --restart to "
             "train this run again from step 0"
         )
     algorithm = get_algorithm(config.algo)
-    agent_config = _agent_config_from_json(algorithm, saved["agent"])
+    agent_config = directory.agent_config_from_json(algorithm, saved["agent"])
     dataset = dataset if dataset is not None else load_dataset(config.dataset, config.cache_dir)
     recorded = saved.get("dataset", {})
     if recorded.get("size") is not None and dataset.size != recorded["size"]:
@@ -333,16 +267,16 @@ def _resume(run_dir: Path, dataset: Dataset | None, write: bool, restart: bool =
             raise FileNotFoundError(f"no checkpoint in {run_dir}; the run has not saved one yet")
         run = _build(run_dir, config, agent_config, dataset, state=None)
         # Killed before its first checkpoint (or --restart): nothing to continue from.
-        for name in (LOG, SUMMARY, CURVE):
+        for name in (LOG, directory.SUMMARY, CURVE):
             (run_dir / name).unlink(missing_ok=True)
         shutil.rmtree(run_dir / "tb", ignore_errors=True)
-        run.identity = _identity(run_dir, saved)
+        run.identity = identity.of_run(run_dir, saved)
         if algorithm.pretrain is not None:
             _pretrain(run)
         return run
     run = _build(run_dir, config, agent_config, dataset, state="checkpoint", saved=saved)
     if write:
-        run.identity = _identity(run_dir, saved)
+        run.identity = identity.of_run(run_dir, saved)
         problem = logger.log_problem(
             run_dir / LOG, run.state["evaluations"], run.step, config.steps
         )
@@ -355,20 +289,6 @@ def _resume(run_dir: Path, dataset: Dataset | None, write: bool, restart: bool =
                 flush=True,
             )
     return run
-
-
-def _identity(run_dir: Path, saved: dict) -> dict[str, Any]:
-    """The run's identity, giving a run from before run ids one (in its config.json) now."""
-    if not saved.get("run_id"):
-        saved = {"run_id": identity.new_run_id(), **saved}
-        checkpoint.save_json(run_dir / CONFIG, saved)
-    return identity.of_config(saved)
-
-
-def _agent_config_from_json(algorithm: Algorithm, fields: dict) -> Any:
-    names = {f.name for f in dataclasses.fields(algorithm.preset)}
-    fields = {k: tuple(v) if isinstance(v, list) else v for k, v in fields.items() if k in names}
-    return validation.validate(algorithm.preset, algorithm.name, fields)
 
 
 def _build(run_dir, config, agent_config, dataset, state, saved=None) -> Run:
@@ -397,7 +317,7 @@ def _build(run_dir, config, agent_config, dataset, state, saved=None) -> Run:
     )
     init_key, loop_key = _keys(config.seed)
     fresh = {
-        "agent": _init_agent(
+        "agent": init_agent(
             algorithm.init, init_key, dataset.obs_dim, dataset.act_dim, agent_config
         ),
         "key": loop_key,
@@ -406,7 +326,7 @@ def _build(run_dir, config, agent_config, dataset, state, saved=None) -> Run:
         "normalizer": {"mean": normalizer.mean, "std": normalizer.std},
     }
     if state == "checkpoint":
-        what = f"this {config.algo} run ({_settings_text(algorithm, agent_config)}, {dataset.name})"
+        what = f"this {config.algo} run ({directory.settings_text(algorithm, agent_config)}, {dataset.name})"
         template = {**fresh, "evaluations": None}
         raw = identity.checked(checkpoint.load_raw(run_dir), run_dir, saved)
         stored = checkpoint.restore(
@@ -437,64 +357,6 @@ def _check_reference_scores(config: TrainConfig, dataset: Dataset) -> None:
         raise DatasetError(f"{config.dataset}: {problem}")
 
 
-def read_checkpoint(run_dir: str | Path) -> tuple[dict, Algorithm, dict]:
-    """A run's config.json, algorithm and latest checkpoint payload, for a reader outside
-    training (``load_policy``, the ONNX export): the checkpoint's identity checked against
-    config.json, its state layout against the algorithm's, and its actor's and normaliser's
-    structure, shapes and dtypes against what the run's settings make."""
-    run_dir = Path(run_dir)
-    config = run_config.read(run_dir)
-    if config.get("max_action") is None:  # the policy's output scale: no guess
-        raise run_config.ConfigError(
-            f"{run_dir / CONFIG}: max_action is missing (every eabc writes it); put back the "
-            "evaluation environment's action bound (its action_space.high), e.g. 1.0"
-        )
-    env_id = config["train"].get("env") or config["dataset"].get("env_id")
-    if env_id:  # a run that names its environment: max_action must be that environment's
-        env = make_env(env_id)
-        try:
-            run_config.check_max_action(config, run_dir / CONFIG, env)
-        finally:
-            env.close()
-    algorithm = get_algorithm(config["train"]["algo"])
-    raw = identity.checked(checkpoint.load_raw(run_dir), run_dir, config)
-    raw = checkpoint.check_layout(raw, run_dir, algorithm.name, algorithm.state_layout)
-    agent_config = _agent_config_from_json(algorithm, config.get("agent", {}))
-    path = run_dir / checkpoint.CHECKPOINT
-    what = f"this {algorithm.name} run ({_settings_text(algorithm, agent_config)})"
-    try:
-        actor = pytree.find(raw["agent"], "actor")
-        obs_dim = int(np.shape(raw["normalizer"]["mean"])[0])
-        outputs = int(np.shape(actor[f"b{sum(k.startswith('w') for k in actor) - 1}"])[0])
-    except (KeyError, IndexError, TypeError) as error:
-        raise checkpoint.CheckpointError(
-            f"{path} has no actor or normaliser where {what} keeps them ({error}); it is not a "
-            "checkpoint of this run"
-        ) from None
-    act_dim = outputs // 2 if algorithm.gaussian_actor else outputs
-    shapes = jax.eval_shape(
-        lambda key: algorithm.init(key, obs_dim, act_dim, agent_config), jax.random.PRNGKey(0)
-    )
-    zeros = jax.tree.map(lambda s: np.zeros(s.shape, s.dtype), pytree.to_state_dict(shapes))
-    template = {
-        "actor": pytree.find(zeros, "actor"),
-        "normalizer": {"mean": np.zeros(obs_dim, np.float32), "std": np.zeros(obs_dim, np.float32)},
-    }
-    found = {"actor": actor, "normalizer": raw["normalizer"]}
-    checkpoint.check_structure(found, template, path, what)
-    return config, algorithm, raw
-
-
-def _settings_text(algorithm: Algorithm, agent_config) -> str:
-    """The settings that differ from the algorithm's preset, e.g. ``num_critics=5``."""
-    changed = [
-        f"{f.name}={getattr(agent_config, f.name)}"
-        for f in dataclasses.fields(agent_config)
-        if getattr(agent_config, f.name) != getattr(algorithm.preset, f.name)
-    ]
-    return ", ".join(changed) or "its preset settings"
-
-
 def prepared(algorithm: Algorithm, dataset: Dataset, convention: str | None = None) -> Dataset:
     """The data as the algorithm trains on it; the run keeps the dataset as loaded.
 
@@ -510,7 +372,7 @@ def prepared(algorithm: Algorithm, dataset: Dataset, convention: str | None = No
 # algorithms' inits, on two busy cores). Its fusions come from XLA's older LLVM emitter, not
 # the MLIR fusion emitters: still the same bits for every algorithm, compiled in 38% less time
 # again (all 21 algorithms' inits at the contract checks' sizes: 40.8 -> 25.2 s of CPU).
-_init_agent = jax.jit(
+init_agent = jax.jit(
     lambda init, *args: init(*args),
     static_argnums=(0, 2, 3, 4),
     compiler_options={"xla_backend_optimization_level": 1, "xla_cpu_use_fusion_emitters": False},
