@@ -162,7 +162,7 @@ def paired_lines(algos: tuple[str, str], steps: int, rounds: int) -> list[str]:
 
 def per_core(algo: str, steps: int, repeats: int) -> list[float]:
     """One single-threaded process per core, side by side: each one's median steps/s."""
-    from eabc.experiments.sweep import SINGLE_THREAD
+    from eabc.experiments.job_process import SINGLE_THREAD
 
     env = {**os.environ, **SINGLE_THREAD}
     procs = [

@@ -394,7 +394,7 @@ def test_ctrl_c_on_train_is_one_line_exit_130_and_the_resume_is_exact(tmp_path, 
 
 
 def test_ctrl_c_on_a_sweep_is_one_line_and_stops_its_workers_quietly(tmp_path, npz):
-    from eabc.experiments import sweep  # noqa: PLC0415
+    from eabc.experiments import run_status  # noqa: PLC0415
 
     spec = {"datasets": [npz], "algos": ["bc"], "steps": 200000, "grid": {"hidden_dims": [[32, 32]]},
             "train": {"log_interval": 100, "eval_interval": 100000, "checkpoint_interval": 100,
@@ -403,12 +403,12 @@ def test_ctrl_c_on_a_sweep_is_one_line_and_stops_its_workers_quietly(tmp_path, n
     (run,) = expand(spec)
     root = tmp_path / "root"
     proc = _eabc("sweep", str(tmp_path / "spec.yaml"), "--root", str(root))
-    code, lines = _ctrl_c(proc, lambda: sweep.status(run, root)[0] == "partial")
+    code, lines = _ctrl_c(proc, lambda: run_status.status(run, root)[0] == "partial")
     assert code == 130 and not any("Traceback" in line for line in lines), lines
     assert lines[-1].startswith("sweep interrupted") and str(root) in lines[-1], lines
     for log in (root / "logs").glob("*.log"):
         assert "Traceback" not in log.read_text(), log.read_text()[-2000:]
-    assert sweep.status(run, root)[0] == "partial"  # resumable
+    assert run_status.status(run, root)[0] == "partial"  # resumable
 
 
 def test_ctrl_c_on_data_make_is_one_line_and_leaves_no_half_file(tmp_path):

@@ -635,7 +635,7 @@ def test_a_job_that_cannot_start_fails_alone(tmp_path, monkeypatch):
     """Whatever stops one job from starting (its log file cannot be made, the process cannot be
     spawned), the sweep's other jobs start and finish; the sweep then reports the one failure.
     Before, the exception left the pool and terminated the healthy running jobs."""
-    from eabc.experiments import sweep  # noqa: PLC0415
+    from eabc.experiments import local_pool  # noqa: PLC0415
     from eabc.experiments.spec import expand  # noqa: PLC0415
 
     runs = expand({"datasets": ["hopper-random"], "algos": ["td3bc"], "seeds": [0, 1]})
@@ -653,9 +653,9 @@ def test_a_job_that_cannot_start_fails_alone(tmp_path, monkeypatch):
         def poll(self):
             return 0
 
-    monkeypatch.setattr(sweep.subprocess, "Popen", Finished)
+    monkeypatch.setattr(local_pool.subprocess, "Popen", Finished)
     lines = []
     with pytest.raises(RuntimeError, match=f"1 job\\(s\\) failed: {runs[0].run_id}"):
-        sweep.run_local([[runs[0]], [runs[1]]], tmp_path, workers=1, log=lines.append)
+        local_pool.run_local([[runs[0]], [runs[1]]], tmp_path, workers=1, log=lines.append)
     assert started == [runs[1].seed]
     assert any(line.startswith(f"finished {runs[1].run_id}") for line in lines), lines

@@ -149,13 +149,13 @@ def test_a_missing_extra_is_one_line_that_names_it(monkeypatch, pendulum_dataset
     from eabc.data.d3rlpy_export import to_d3rlpy  # noqa: PLC0415
     from eabc.data.dataset import DatasetError  # noqa: PLC0415
     from eabc.data.loaders import export_minari  # noqa: PLC0415
-    from eabc.experiments import sweep  # noqa: PLC0415
+    from eabc.experiments import ray_pool  # noqa: PLC0415
 
     monkeypatch.setitem(sys.modules, "ray", None)  # as if not installed
     monkeypatch.setitem(sys.modules, "minari", None)
     monkeypatch.setitem(sys.modules, "d3rlpy", None)
     with pytest.raises(RuntimeError, match=r"pip install 'eabc\[ray\]'"):
-        sweep.run_ray([], "root")
+        ray_pool.run_ray([], "root")
     with pytest.raises(DatasetError, match=r"pip install 'eabc\[minari\]'"):
         export_minari(pendulum_dataset, "test/pendulum/x-v0")
     with pytest.raises(DatasetError, match=r"pip install 'eabc\[d3rlpy\]'"):

@@ -148,12 +148,12 @@ def test_the_thin_schedule_keeps_the_final_window_and_thins_the_rest():
 
 def test_a_sweep_estimates_the_evaluations_its_schedule_makes():
     from eabc import timing
-    from eabc.experiments import sweep
+    from eabc.experiments import planning
     from eabc.experiments.spec import RunSpec
 
     def seconds(schedule, done=0):
         train = (("eval_schedule", schedule), ("steps", 1_000_000))
-        return sweep.estimate_seconds(RunSpec("hopper-medium", "td3bc", 0, (), train), done)
+        return planning.estimate_seconds(RunSpec("hopper-medium", "td3bc", 0, (), train), done)
 
     episode = timing.EPISODE_SECONDS / timing.REFERENCE.factor
     assert seconds("every") - seconds("thin") == pytest.approx((200 - 29) * 10 * episode)

@@ -19,7 +19,7 @@ import yaml
 
 from eabc.cli import main
 from eabc.data.loaders import save_npz
-from eabc.experiments import results, sweep
+from eabc.experiments import planning, ray_pool, results, run_status
 from eabc.experiments.presets import PRESETS
 from eabc.experiments.spec import expand, groups
 from eabc.training import lifecycle, trainer
@@ -122,7 +122,7 @@ def test_local_sweep_is_interrupted_resumed_and_stored(tmp_path, two_datasets):
     try:
         deadline = time.time() + 300
         while time.time() < deadline:
-            states = [sweep.status(r, root)[0] for r in runs]
+            states = [run_status.status(r, root)[0] for r in runs]
             if "partial" in states:
                 break
             assert proc.poll() is None, "the sweep ended before it could be interrupted"
@@ -136,7 +136,7 @@ def test_local_sweep_is_interrupted_resumed_and_stored(tmp_path, two_datasets):
     assert interrupted and states.count("done") < len(runs)
 
     main(_cli(two_datasets, root)[3:])  # the sweep again, from this process (its workers are not)
-    assert [sweep.status(r, root)[0] for r in runs] == ["done"] * len(runs)
+    assert [run_status.status(r, root)[0] for r in runs] == ["done"] * len(runs)
     for run in runs:  # each job's log says what it trains, how long that takes, when it ended
         log = (root / "logs" / f"{run.run_id}.log").read_text()
         assert f"eabc: training {run.algo} " in log and "/400 steps in " in log, log
@@ -205,10 +205,10 @@ def test_ray_backend_runs_a_sweep_on_a_local_ray_instance(tmp_path, two_datasets
     spec = _spec([os.path.relpath(d) for d in two_datasets], steps=200)
     runs = expand(spec)
     try:
-        sweep.run_ray(sweep.jobs(runs, root, "vmap"), root)
+        ray_pool.run_ray(planning.jobs(runs, root, "vmap"), root)
     finally:
         ray.shutdown()
-    assert [sweep.status(r, root)[0] for r in runs] == ["done"] * 8
-    assert len(list((tmp_path / "driver" / "ray-sweep" / sweep.RUNS).iterdir())) == 8
+    assert [run_status.status(r, root)[0] for r in runs] == ["done"] * 8
+    assert len(list((tmp_path / "driver" / "ray-sweep" / run_status.RUNS).iterdir())) == 8
     table, _ = results.collect(root)
     assert len(table) == 8 and table["final_score"].notna().all()

@@ -24,7 +24,7 @@ from eabc.cli import main
 from eabc.data.dataset import Dataset, DatasetError
 from eabc.data.loaders import save_npz
 from eabc.data.sources import load_dataset
-from eabc.experiments import results, sweep
+from eabc.experiments import job_process, local_pool, planning, results, run_status
 from eabc.experiments.spec import expand
 from eabc.training import checkpoint, chunks, lifecycle, logger, trainer
 from eabc.training.checkpoint import CheckpointError
@@ -298,25 +298,25 @@ def test_sweep_identity_paths_changed_specs_and_broken_files(tmp_path, pendulum_
     assert len({r.run_id for r in runs}) == 2
     root = tmp_path / "sweep"
     for run in runs:
-        sweep.execute([run.to_json()], str(root))
-    assert [sweep.status(r, root)[0] for r in runs] == ["done", "done"]
+        job_process.execute([run.to_json()], str(root))
+    assert [run_status.status(r, root)[0] for r in runs] == ["done", "done"]
 
     longer = expand({**spec, "steps": 400})  # more steps extend the runs
-    assert [sweep.status(r, root) for r in longer] == [("partial", 200)] * 2
-    sweep.execute([longer[0].to_json()], str(root))
-    assert sweep.status(longer[0], root) == ("done", 400)
-    assert sweep.status(runs[0], root)[0] == "changed"  # fewer steps than trained: refused
+    assert [run_status.status(r, root) for r in longer] == [("partial", 200)] * 2
+    job_process.execute([longer[0].to_json()], str(root))
+    assert run_status.status(longer[0], root) == ("done", 400)
+    assert run_status.status(runs[0], root)[0] == "changed"  # fewer steps than trained: refused
 
     other = expand({**spec, "train": {**spec["train"], "eval_interval": 100}})
-    assert sweep.status(other[1], root)[0] == "changed"
+    assert run_status.status(other[1], root)[0] == "changed"
     with pytest.raises(ValueError, match="eval_interval 200 -> 100"):
-        sweep.execute([other[1].to_json()], str(root))
+        job_process.execute([other[1].to_json()], str(root))
 
     # One corrupt file: that run is broken and left out, the others are still planned.
     (root / "runs" / runs[1].run_id / checkpoint.CHECKPOINT).write_bytes(b"\x00" * 100)
     (root / "runs" / runs[1].run_id / "summary.json").write_text("{")
-    assert sweep.status(longer[1], root)[0] == "broken"
-    assert [j[0].run_id for j in sweep.jobs(longer, root, "processes")] == []
+    assert run_status.status(longer[1], root)[0] == "broken"
+    assert [j[0].run_id for j in planning.jobs(longer, root, "processes")] == []
 
 
 def test_killed_sweep_leaves_no_worker_and_its_restart_matches(tmp_path, pendulum_dataset):
@@ -346,7 +346,7 @@ def test_killed_sweep_leaves_no_worker_and_its_restart_matches(tmp_path, pendulu
     proc = subprocess.Popen(cli, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     run_dir = root / "runs" / run.run_id
     deadline = time.time() + 120
-    while sweep.status(run, root)[0] != "partial" and time.time() < deadline:
+    while run_status.status(run, root)[0] != "partial" and time.time() < deadline:
         time.sleep(0.05)
     worker = json.loads((run_dir / OWNER).read_text())["pid"]
     proc.send_signal(signal.SIGKILL)
@@ -355,13 +355,15 @@ def test_killed_sweep_leaves_no_worker_and_its_restart_matches(tmp_path, pendulu
     while _alive(worker) and time.time() < deadline:
         time.sleep(0.1)
     assert not _alive(worker), "the worker went on training after its sweep was killed"
-    assert sweep.status(run, root)[0] == "partial"
+    assert run_status.status(run, root)[0] == "partial"
 
     subprocess.run(cli, check=True, stdout=subprocess.DEVNULL)
     # The same run never interrupted, in the worker a sweep starts (single-threaded, so the same
     # arithmetic), from this process's own pool: no third sweep process to start.
     straight = tmp_path / "straight"
-    sweep.run_local(sweep.jobs([run], straight, "processes"), straight, 1, log=lambda _: None)
+    local_pool.run_local(
+        planning.jobs([run], straight, "processes"), straight, 1, log=lambda _: None
+    )
     assert_same_results(straight / "runs" / run.run_id, run_dir)
 
 

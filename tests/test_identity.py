@@ -26,7 +26,7 @@ from eabc.cli import main
 from eabc.data.dataset import DatasetError
 from eabc.data.loaders import save_npz
 from eabc.deploy import export_onnx
-from eabc.experiments import results, sweep
+from eabc.experiments import job_process, results, run_status
 from eabc.experiments.spec import expand
 from eabc.training import checkpoint, lifecycle, trainer
 from eabc.training.checkpoint import CheckpointError
@@ -179,11 +179,11 @@ def test_a_sweep_does_not_start_again_a_run_whose_checkpoint_is_gone(tmp_path, p
     spec = {"datasets": [str(tmp_path / "pend.npz")], "algos": ["td3bc"], "steps": 200,
             "grid": {"hidden_dims": [[32, 32]]}, "train": train}  # fmt: skip
     (run,) = expand(spec)
-    sweep.execute([run.to_json()], str(tmp_path / "sweep"))
+    job_process.execute([run.to_json()], str(tmp_path / "sweep"))
     run_dir = tmp_path / "sweep" / "runs" / run.run_id
     (run_dir / checkpoint.CHECKPOINT).unlink()
     (longer,) = expand({**spec, "steps": 300})  # an extension needs the checkpoint
-    state, _, why = sweep._status(longer, tmp_path / "sweep")
+    state, _, why = run_status.status_with_reason(longer, tmp_path / "sweep")
     assert state == "broken" and "is finished (200 of 300 steps" in why
 
 

@@ -16,7 +16,7 @@ import pytest
 from eabc.agents import get_algorithm
 from eabc.data.dataset import Normalizer
 from eabc.data.loaders import save_npz
-from eabc.experiments import sweep
+from eabc.experiments import job_process
 from eabc.experiments.spec import RunSpec, expand, groups, job_name
 from eabc.training import chunks, lifecycle, trainer
 from eabc.training.config import TrainConfig
@@ -57,9 +57,9 @@ def test_three_different_runs_in_one_program_equal_each_trained_alone(tmp_path, 
         RunSpec(files[1], "eabc", 1, tuple(sorted({**AGENT, "confidence_level": 0.25, "alpha": 1.0}.items())), train),
         RunSpec(files[0], "eabc", 2, tuple(sorted({**AGENT, "confidence_level": 1.0, "pessimism_beta": 2.0}.items())), train),
     ]  # fmt: skip
-    together = sweep.execute([r.to_json() for r in runs], str(tmp_path / "together"))
+    together = job_process.execute([r.to_json() for r in runs], str(tmp_path / "together"))
     for run, summary in zip(runs, together):
-        (alone,) = sweep.execute([run.to_json()], str(tmp_path / "alone"))
+        (alone,) = job_process.execute([run.to_json()], str(tmp_path / "alone"))
         got, expected = (
             lifecycle.resume(root / "runs" / run.run_id, lock=False)
             for root in (tmp_path / "together", tmp_path / "alone")

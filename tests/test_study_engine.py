@@ -15,7 +15,7 @@ import pytest
 from packaging.requirements import Requirement
 
 from eabc import cli
-from eabc.experiments import results, study, sweep
+from eabc.experiments import job_process, planning, results, study
 from eabc.experiments.spec import expand
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -65,14 +65,14 @@ def test_a_group_starts_only_if_its_scaled_estimate_ends_before_the_deadline(tmp
     so the next ones are scaled by that: one of 1000 s (200 s or more) does not fit a 30 s
     budget, one of 1 s does, and the queue goes on past the one it skipped."""
     estimates = {"hopper-medium": 1.0, "walker2d-medium": 1000.0, "halfcheetah-medium": 1.0}
-    monkeypatch.setattr(sweep, "estimate_seconds", lambda run, done=0: estimates[run.dataset])
+    monkeypatch.setattr(planning, "estimate_seconds", lambda run, done=0: estimates[run.dataset])
     trained = []
 
     def execute(job, root, eval_workers=0):
         trained.append(job[0]["dataset"])
         time.sleep(0.2)
 
-    monkeypatch.setattr(sweep, "execute", execute)
+    monkeypatch.setattr(job_process, "execute", execute)
     monkeypatch.setattr(study, "start_datasets", lambda *a: ({}, None))
     report = study.run_study(
         _queue(tmp_path), tmp_path / "root", tmp_path / "out", time.time() + 30, echo=lambda _: None
@@ -88,7 +88,7 @@ def test_a_failed_group_is_named_and_the_queue_goes_on(tmp_path, monkeypatch):
         if job[0]["dataset"] == "walker2d-medium":
             raise ValueError("no memory for it")
 
-    monkeypatch.setattr(sweep, "execute", execute)
+    monkeypatch.setattr(job_process, "execute", execute)
     monkeypatch.setattr(study, "start_datasets", lambda *a: ({}, None))
     report = study.run_study(
         _queue(tmp_path), tmp_path / "root", tmp_path / "out", echo=lambda _: None

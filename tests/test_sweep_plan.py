@@ -12,7 +12,7 @@ import pytest
 from eabc import timing
 from eabc.agents import get_algorithm
 from eabc.cli import main
-from eabc.experiments import sweep
+from eabc.experiments import planning, run_status
 from eabc.experiments.spec import RunSpec, expand
 
 TRAIN = (("eval_episodes", 10), ("eval_interval", 5000), ("steps", 20000))
@@ -24,11 +24,11 @@ def _run(algo="td3bc", seed=0, overrides=(), dataset="hopper-medium"):
 
 def _fake_run_dir(root, run: RunSpec, speeds: list[float]):
     """A run directory with a config and a log whose chunks ran at ``speeds`` (steps/s)."""
-    run_dir = root / sweep.RUNS / run.run_id
+    run_dir = root / run_status.RUNS / run.run_id
     run_dir.mkdir(parents=True)
     train = {"algo": run.algo, "seed": run.seed, "steps": 20000, "dataset": run.dataset}
     (run_dir / "config.json").write_text(json.dumps({"train": train, "agent": {}, "dataset": {}}))
-    (run_dir / sweep.SPEC).write_text(json.dumps({"run_id": run.run_id, **run.to_json()}))
+    (run_dir / run_status.SPEC).write_text(json.dumps({"run_id": run.run_id, **run.to_json()}))
     rows = ["step,steps_per_s,q_mean"] + [f"{1000 * (i + 1)},{v},1.0" for i, v in enumerate(speeds)]
     (run_dir / "log.csv").write_text("\n".join(rows) + "\n")
     return run_dir
@@ -38,11 +38,11 @@ def test_without_measurements_the_contract_hint_and_the_evaluations_set_the_cost
     run = _run()
     algorithm = get_algorithm("td3bc")
     expected = 20000 / algorithm.steps_per_s + 4 * 10 * timing.EPISODE_SECONDS
-    assert sweep.estimate_seconds(run) == pytest.approx(expected)
+    assert planning.estimate_seconds(run) == pytest.approx(expected)
     # Half the steps done: half the steps and half the evaluations left.
     half = 10000 / algorithm.steps_per_s + 2 * 10 * timing.EPISODE_SECONDS
-    assert sweep.estimate_seconds(run, 10000) == pytest.approx(half)
-    assert sweep.estimate_seconds(run, 10000, steps_per_s=50.0) == pytest.approx(
+    assert planning.estimate_seconds(run, 10000) == pytest.approx(half)
+    assert planning.estimate_seconds(run, 10000, steps_per_s=50.0) == pytest.approx(
         10000 / 50.0 + 2 * 10 * timing.EPISODE_SECONDS
     )
 
@@ -55,15 +55,15 @@ def test_speeds_measured_in_the_root_replace_the_hint_for_the_run_and_its_siblin
     # The first chunk compiled (slow); the median ignores it.
     _fake_run_dir(tmp_path, measured, [3.0, 40.0, 42.0, 44.0])
     runs = [measured, sibling, other_data, other_setting]
-    speeds = sweep.measured_speeds(runs, tmp_path)
+    speeds = planning.measured_speeds(runs, tmp_path)
     assert speeds[measured.run_id] == pytest.approx(41.0)
     assert speeds[sibling.run_id] == speeds[other_data.run_id] == pytest.approx(41.0)
     assert other_setting.run_id not in speeds
     # A sweep deciding what to start next sees the runs begun by others (not in its list).
-    assert sweep.measured_speeds([sibling], tmp_path) == {sibling.run_id: pytest.approx(41.0)}
-    (cost,) = sweep.job_estimates([[sibling]], tmp_path)
+    assert planning.measured_speeds([sibling], tmp_path) == {sibling.run_id: pytest.approx(41.0)}
+    (cost,) = planning.job_estimates([[sibling]], tmp_path)
     assert cost == pytest.approx(20000 / 41.0 + 4 * 10 * timing.EPISODE_SECONDS)
-    rows = {r["run"].run_id: r for r in sweep.plan(runs, tmp_path)}
+    rows = {r["run"].run_id: r for r in planning.plan(runs, tmp_path)}
     assert rows[sibling.run_id]["measured"] and not rows[other_setting.run_id]["measured"]
     assert rows[sibling.run_id]["seconds"] == pytest.approx(
         20000 / 41.0 + 4 * 10 * timing.EPISODE_SECONDS
@@ -95,8 +95,8 @@ def test_a_model_fit_is_counted_once_before_a_run_begins():
         run = _run(algo=algo)
         fit = algorithm.pretrain_s(algorithm.preset)
         assert fit > 60
-        begun = sweep.estimate_seconds(run, 5000)  # one evaluation in, no fit left
-        assert sweep.estimate_seconds(run) == pytest.approx(
+        begun = planning.estimate_seconds(run, 5000)  # one evaluation in, no fit left
+        assert planning.estimate_seconds(run) == pytest.approx(
             begun + fit + 5000 / algorithm.steps_per_s + 10 * timing.EPISODE_SECONDS
         )
     # A capped fit costs less than MOPO's (trained until the patience runs out).
@@ -124,16 +124,21 @@ def test_the_dry_run_says_what_its_estimate_rests_on(tmp_path, capsys):
 
 
 def test_durations_and_the_first_job_that_fits_a_deadline():
-    assert [sweep.parse_duration(t) for t in ("90s", "45m", "2.5h", "10")] == [90, 2700, 9000, 600]
+    assert [planning.parse_duration(t) for t in ("90s", "45m", "2.5h", "10")] == [
+        90,
+        2700,
+        9000,
+        600,
+    ]
     for bad in ("", "h", "-5m", "0s", "soon", "nanh"):
         with pytest.raises(ValueError, match="positive number with s, m or h"):
-            sweep.parse_duration(bad)
+            planning.parse_duration(bad)
     jobs, costs = ["a", "b", "c"], [500.0, 50.0, 10.0]
-    assert sweep.next_job(jobs, costs, now=0.0, deadline=None) == 0
-    assert sweep.next_job(jobs, costs, now=0.0, deadline=600.0) == 0
-    assert sweep.next_job(jobs, costs, now=0.0, deadline=100.0) == 1  # "a" would end at 500
-    assert sweep.next_job(jobs, costs, now=95.0, deadline=100.0) is None
-    assert sweep.next_job([], [], now=0.0, deadline=100.0) is None
+    assert planning.next_job(jobs, costs, now=0.0, deadline=None) == 0
+    assert planning.next_job(jobs, costs, now=0.0, deadline=600.0) == 0
+    assert planning.next_job(jobs, costs, now=0.0, deadline=100.0) == 1  # "a" would end at 500
+    assert planning.next_job(jobs, costs, now=95.0, deadline=100.0) is None
+    assert planning.next_job([], [], now=0.0, deadline=100.0) is None
 
 
 def test_within_starts_only_the_runs_that_end_in_time(
@@ -153,7 +158,7 @@ def test_within_starts_only_the_runs_that_end_in_time(
     root = tmp_path / "root"
     main(["sweep", str(spec), "--root", str(root), "--workers", "2", "--within", "5s"])
     out = capsys.readouterr().out
-    started = sorted(p.name for p in (root / sweep.RUNS).iterdir())
+    started = sorted(p.name for p in (root / run_status.RUNS).iterdir())
     assert len(started) == 1 and "__td3bc__" in started[0]
     assert "left for a later sweep (1, their estimates end after the deadline)" in out
     assert "__eabc__" in out.split("left for a later sweep")[1]
@@ -223,28 +228,28 @@ def test_a_run_another_root_has_done_or_is_training_is_left_to_it(
     )
     done, busy, free = expand(yaml.safe_load(spec.read_text()))
     other = tmp_path / "other"  # the second core's root
-    run_dir = other / sweep.RUNS / done.run_id
+    run_dir = other / run_status.RUNS / done.run_id
     run_dir.mkdir(parents=True)
     train = {"algo": "td3bc", "seed": 0, "steps": 300, "dataset": str(data)}
     (run_dir / "config.json").write_text(json.dumps({"train": train, "agent": {}, "dataset": {}}))
-    (run_dir / sweep.SPEC).write_text(json.dumps({"run_id": done.run_id, **done.to_json()}))
+    (run_dir / run_status.SPEC).write_text(json.dumps({"run_id": done.run_id, **done.to_json()}))
     (run_dir / "log.csv").write_text("step,q_mean,return_mean,score\n300,1.0,-500.0,42.0\n")
     (run_dir / "summary.json").write_text(json.dumps({"steps": 300}))
-    (other / sweep.RUNS / busy.run_id).mkdir()  # begun there by a live process (this one)
+    (other / run_status.RUNS / busy.run_id).mkdir()  # begun there by a live process (this one)
     owner = {"pid": os.getpid(), "host": socket.gethostname(), "since": "", "command": ""}
-    (other / sweep.RUNS / busy.run_id / OWNER).write_text(json.dumps(owner))
+    (other / run_status.RUNS / busy.run_id / OWNER).write_text(json.dumps(owner))
 
     root = tmp_path / "root"
     main(["sweep", str(spec), "--root", str(root), "--include", str(other), "--workers", "1"])
     out = capsys.readouterr().out
     assert f"1 runs done in {other}: not run again" in out
     assert f"not starting {busy.run_id}: being trained in {other}" in out
-    assert sorted(p.name for p in (root / sweep.RUNS).iterdir()) == [free.run_id]
-    assert sweep.status(free, root)[0] == "done"
+    assert sorted(p.name for p in (root / run_status.RUNS).iterdir()) == [free.run_id]
+    assert run_status.status(free, root)[0] == "done"
 
     # The report stands on both roots: the other's finished run with its score.
     runs, _ = results.read_archive(other)
-    assert list(runs["run_id"]) == [f"{sweep.RUNS}/{done.run_id}"]
+    assert list(runs["run_id"]) == [f"{run_status.RUNS}/{done.run_id}"]
     assert runs["final_score"].iloc[0] == 42.0 and runs["source"].iloc[0] == str(other)
     main(["report", str(root), "--include", str(other), "--out", str(tmp_path / "report")])
     merged = pd.read_csv(tmp_path / "report" / "runs.csv")

@@ -227,24 +227,24 @@ def _run_sweep(cmd: Sweep) -> None:
     import yaml  # noqa: PLC0415
 
     from eabc.data import sources  # noqa: PLC0415
-    from eabc.experiments import results, sweep  # noqa: PLC0415
+    from eabc.experiments import job_process, local_pool, planning, ray_pool, results, run_status  # noqa: PLC0415
     from eabc.experiments.spec import expand  # noqa: PLC0415
 
     root = paths.expand(cmd.root)
     runs = expand(sweep_spec(cmd))
     for dataset in dict.fromkeys(run.dataset for run in runs):  # all, before the first run
         sources.check_source(dataset)
-    sweep.check_names(runs, root)  # and every run's name, in a dry run too
+    run_status.check_names(runs, root)  # and every run's name, in a dry run too
     if cmd.include:
-        archived = sweep.archived_done(runs, [results.read_archive(d) for d in cmd.include])
+        archived = run_status.archived_done(runs, [results.read_archive(d) for d in cmd.include])
         if archived:
             print(f"{len(archived)} runs done in {', '.join(cmd.include)}: not run again")
         runs = [r for r in runs if r.run_id not in archived]
-    rows, speed = sweep.plan(runs, root), timing.REFERENCE
+    rows, speed = planning.plan(runs, root), timing.REFERENCE
     hinted = [r["seconds"] for r in rows if r["status"] != "done" and not r["measured"]]
     if sum(hinted) > 10:  # long enough for this host's speed to matter: probe it
         speed = timing.host_speed()
-        rows = sweep.plan(runs, root, speed)
+        rows = planning.plan(runs, root, speed)
     left = [r for r in rows if r["status"] != "done"]
     hours = sum(r["seconds"] for r in left) / 3600
     counts = {s: sum(r["status"] == s for r in rows) for s in ("done", "partial", "pending")}
@@ -262,7 +262,7 @@ def _run_sweep(cmd: Sweep) -> None:
         f"{counts['pending']} pending; about {hours:.1f} CPU-core-hours left {basis}",
         flush=True,
     )
-    found = sweep.problems(runs, root)
+    found = run_status.problems(runs, root)
     for why in found["broken"]:  # one unreadable run does not stop the others
         print(f"skipping a broken run: {why}", file=sys.stderr)
     changed = (
@@ -282,25 +282,25 @@ def _run_sweep(cmd: Sweep) -> None:
         if changed:  # what the sweep itself would refuse, said by its dry run
             print(f"the sweep would refuse to start: {changed}", file=sys.stderr)
         return
-    deadline = None if cmd.within is None else time.time() + sweep.parse_duration(cmd.within)
+    deadline = None if cmd.within is None else time.time() + planning.parse_duration(cmd.within)
     if deadline is not None and cmd.backend != "local":
         raise ValueError("--within works with the local backend only")
-    layout = sweep.default_layout() if cmd.layout == "auto" else cmd.layout
-    job_list = sweep.jobs(runs, root, layout)
-    sweep.prepare_datasets([job[0] for job in job_list])
+    layout = planning.default_layout() if cmd.layout == "auto" else cmd.layout
+    job_list = planning.jobs(runs, root, layout)
+    job_process.prepare_datasets([job[0] for job in job_list])
     root.mkdir(parents=True, exist_ok=True)
     (root / "sweep.yaml").write_text(yaml.safe_dump(sweep_spec(cmd), sort_keys=False))
     try:
         if cmd.backend == "ray":
-            sweep.run_ray(job_list, root, cmd.ray_address, cmd.cpus_per_job, cmd.gpus_per_job)
+            ray_pool.run_ray(job_list, root, cmd.ray_address, cmd.cpus_per_job, cmd.gpus_per_job)
         else:
             others = [
                 Path(d) for d in cmd.include if not (Path(d) / results.ARCHIVE_FILES[0]).is_file()
             ]
-            sweep.run_local(
+            local_pool.run_local(
                 job_list, root, cmd.workers, single_thread=layout == "processes",
                 deadline=deadline, speed=speed,
-                taken=(lambda run: sweep.taken_elsewhere(run, others)) if others else None,
+                taken=(lambda run: run_status.taken_elsewhere(run, others)) if others else None,
             )  # fmt: skip
     except KeyboardInterrupt:  # the pool has stopped its workers; their runs resume exactly
         raise Interrupted(

@@ -68,8 +68,8 @@ def run_study(cmd: Study) -> None:
     # Before JAX starts its backend: one process trains the whole queue, growing its memory as
     # the programs need it, instead of taking 75% of the GPU up front.
     os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
-    from eabc.experiments import results, study, sweep  # noqa: PLC0415
-    from eabc.experiments.spec import expand, load_spec  # noqa: PLC0415
+    from eabc.experiments import planning, results, run_status, study  # noqa: PLC0415
+    from eabc.experiments.spec import expand, groups, load_spec  # noqa: PLC0415
 
     if not cmd.specs:  # tyro takes none; a study of nothing would write an empty --out
         raise ValueError(
@@ -91,13 +91,13 @@ def run_study(cmd: Study) -> None:
         runs += expand(spec)
     if cmd.smoke:  # the first groups, two seeds each: every stage of the path, in a minute
         seeds = sorted({r.seed for r in runs})[:SMOKE_SEEDS]
-        runs = [r for group in sweep.groups(runs)[:SMOKE_GROUPS] for r in group if r.seed in seeds]
+        runs = [r for group in groups(runs)[:SMOKE_GROUPS] for r in group if r.seed in seeds]
     if cmd.include:
-        done = sweep.archived_done(runs, [results.read_archive(d) for d in cmd.include])
+        done = run_status.archived_done(runs, [results.read_archive(d) for d in cmd.include])
         if done:
             print(f"{len(done)} runs done in {', '.join(cmd.include)}: not trained again")
         runs = [r for r in runs if r.run_id not in done]
-    deadline = None if cmd.within is None else time.time() + sweep.parse_duration(cmd.within)
+    deadline = None if cmd.within is None else time.time() + planning.parse_duration(cmd.within)
     workers = cmd.data_workers or max(1, (os.cpu_count() or 2) - 1)
     evaluators = cmd.eval_workers
     if evaluators is None:

@@ -183,8 +183,8 @@ def train_plan(cmd: Train) -> dict[str, str]:
     from eabc.agents import get_algorithm  # noqa: PLC0415
     from eabc.data import generate, sources  # noqa: PLC0415
     from eabc.evaluation import make_env  # noqa: PLC0415
+    from eabc.experiments.planning import estimate_seconds  # noqa: PLC0415
     from eabc.experiments.spec import TRAIN_FIELDS, RunSpec  # noqa: PLC0415
-    from eabc.experiments.sweep import estimate_seconds  # noqa: PLC0415
     from eabc.training import lifecycle, trainer  # noqa: PLC0415
     from eabc.training.checkpoint import CONFIG  # noqa: PLC0415
     from eabc.training.config import (  # noqa: PLC0415

@@ -154,7 +154,7 @@ def _read_run(run_dir: Path, run_id: str, config: dict) -> tuple[dict, list[dict
     problem = problem or _foreign_summary(run_dir, summary, run)
     wall = _num(last_row.get("wall_time")) if last_row else math.nan
     last = evaluations[-FINAL_EVALUATIONS:]
-    spec = _read_json(run_dir / "sweep.json")  # written by eabc.experiments.sweep
+    spec = _read_json(run_dir / "sweep.json")  # written by eabc.experiments.job_process
     segments = provenance.read(run_dir)
     row = {
         "run_id": run_id,

@@ -27,7 +27,7 @@ import pandas as pd
 
 from eabc import paths
 from eabc.data import generate
-from eabc.experiments import results, sweep
+from eabc.experiments import job_process, planning, results, run_status
 from eabc.experiments.spec import RunSpec, job_name
 from eabc.training import eval_pool
 from eabc.training.checkpoint import atomic_write
@@ -80,7 +80,7 @@ def export(root: Path, out: Path) -> int:
         if log.is_file():
             logs.append(pd.read_csv(log).assign(run_id=run_id))
         record = {"run_id": run_id}
-        for name in ("summary.json", "config.json", "provenance.json", sweep.SPEC):
+        for name in ("summary.json", "config.json", "provenance.json", run_status.SPEC):
             file = run_dir / name
             record[name] = json.loads(file.read_text()) if file.is_file() else None
         records.append(json.dumps(record, sort_keys=True))
@@ -150,7 +150,7 @@ def run_study(
     out.mkdir(parents=True, exist_ok=True)
     root.mkdir(parents=True, exist_ok=True)
     log = StudyLog(out, echo)
-    job_list = sweep.jobs(runs, root, "vmap")
+    job_list = planning.jobs(runs, root, "vmap")
     log(f"{len(runs)} runs in {len(job_list)} groups to train in {root}")
     futures, pool = start_datasets(job_list, data_workers, dataset_size, log)
     evaluators = eval_pool.EvaluationPool(eval_workers) if eval_workers else 0
@@ -159,7 +159,7 @@ def run_study(
     try:
         for job in job_list:
             label = f"{job_name(job)} ({len(job)} run{'s' * (len(job) > 1)})"
-            base = max(sweep.estimate_seconds(r, sweep.status(r, root)[1]) for r in job)
+            base = max(planning.estimate_seconds(r, run_status.status(r, root)[1]) for r in job)
             guess = base * _scale(took, job[0].algo)
             if deadline is not None and took and time.time() + guess > deadline:
                 log(f"not started, ~{guess:.0f} s would end past the deadline: {label}")
@@ -171,7 +171,9 @@ def run_study(
             log(f"training {label} (~{guess:.0f} s by the estimates so far)")
             started = time.time()
             try:
-                sweep.execute([sweep._absolute(r) for r in job], str(root), evaluators)
+                job_process.execute(
+                    [job_process.absolute_spec(r) for r in job], str(root), evaluators
+                )
             except Exception as error:  # one failed group does not stop the queue
                 log(f"failed: {label}: {error}")
                 report["failed"][label] = str(error)

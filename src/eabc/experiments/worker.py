@@ -47,7 +47,7 @@ def main(argv: list[str] | None = None) -> None:
         # Ctrl-C reaches the whole process group: the sweep stops its workers itself (SIGTERM),
         # so a worker does not die of it mid-run with a traceback in its log.
         signal.signal(signal.SIGINT, signal.SIG_IGN)
-    from eabc.experiments.sweep import execute  # noqa: PLC0415 (after the watch is armed)
+    from eabc.experiments.job_process import execute  # noqa: PLC0415 (after the watch is armed)
 
     root, payload = argv
     try:
