@@ -31,7 +31,6 @@ any case is bad. docs/guarantees.md says what the probe covers.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import hashlib
 import math
 import os
@@ -42,12 +41,13 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import machine  # noqa: E402
+import probe_cases  # noqa: E402
+from probe_cases.case import Case, Outcome  # noqa: E402
 
 MEMORY = 6 << 30
 """Each case's address-space limit: a reader that never stops (a link to /dev/zero) ends in a
@@ -62,45 +62,6 @@ CLASSES = {
     6: "no reference scores",
     7: "interrupted",
 }
-
-
-@dataclasses.dataclass
-class Outcome:
-    """What one command did."""
-
-    code: int
-    out: str
-    err: str
-    seconds: float
-    timed_out: bool = False
-
-
-@dataclasses.dataclass
-class Case:
-    """One probe: a directory made by ``prepare``, one ``eabc`` command run in it, a verdict."""
-
-    group: int
-    """Its class (:data:`CLASSES`)."""
-    name: str
-    argv: list[str]
-    """The command's arguments, relative to the case's directory."""
-    expect: str
-    """``refuse`` (bad input), ``work`` (good input), ``either`` (a refusal or a correct result)
-    or ``interrupted`` (Ctrl-C, see ``interrupt``)."""
-    prepare: Callable[[Path], None] = lambda folder: None
-    """Makes the case's files in its (empty) directory."""
-    names: tuple[str, ...] = ()
-    """What a refusal must name (any one of them): a file, a flag, a key."""
-    check: Callable[[Path, Outcome], str | None] | None = None
-    """Why the result of a command that worked is wrong (None: it is right)."""
-    read_only: bool = False
-    """Whether a command that worked must leave the directory as it was (evaluate, dry runs)."""
-    timeout: float = 60.0
-    env: dict[str, str] = dataclasses.field(default_factory=dict)
-    """Environment variables for the command (paths relative to the case's directory)."""
-    interrupt: str | None = None
-    """Ctrl-C (SIGINT) to the command 1 s after this path of the case's directory appears (a
-    run's log.csv: it trains); ``expect`` is then ``interrupted``: exit code 130 and one line."""
 
 
 def snapshot(folder: Path) -> dict[str, str]:
@@ -277,8 +238,6 @@ def main() -> int:
     parser.add_argument("--verbose", action="store_true", help="print every case as it ends")
     args = parser.parse_args()
     os.nice(10)
-
-    import probe_cases  # noqa: PLC0415
 
     scratch = Path(args.scratch or tempfile.mkdtemp(prefix="eabc-probe-")).resolve()
     scratch.mkdir(parents=True, exist_ok=True)

@@ -73,24 +73,25 @@ def test_the_probe_has_at_least_300_cases_in_its_six_classes(tmp_path):
 
 def test_the_probe_judges_refusals_and_results_as_its_docstring_says(tmp_path):
     import probe  # noqa: PLC0415
+    from probe_cases.case import Case, Outcome  # noqa: PLC0415
 
-    refuse = probe.Case(5, "x", ["train"], "refuse", names=("--steps",))
-    work = probe.Case(5, "y", ["train"], "work", check=lambda folder, outcome: None)
+    refuse = Case(5, "x", ["train"], "refuse", names=("--steps",))
+    work = Case(5, "y", ["train"], "work", check=lambda folder, outcome: None)
     line = "error: --steps must be an integer, got 'x'\n"
     judged = {
-        "good refusal": (refuse, probe.Outcome(1, "", line, 0.1), {}, {}),
-        "a refusal naming nothing": (refuse, probe.Outcome(1, "", "error: no\n", 0.1), {}, {}),
-        "a refusal that wrote": (refuse, probe.Outcome(1, "", line, 0.1), {}, {"f": "1"}),
-        "exit 0 on bad input": (refuse, probe.Outcome(0, "ok", "", 0.1), {}, {}),
+        "good refusal": (refuse, Outcome(1, "", line, 0.1), {}, {}),
+        "a refusal naming nothing": (refuse, Outcome(1, "", "error: no\n", 0.1), {}, {}),
+        "a refusal that wrote": (refuse, Outcome(1, "", line, 0.1), {}, {"f": "1"}),
+        "exit 0 on bad input": (refuse, Outcome(0, "ok", "", 0.1), {}, {}),
         "a traceback": (
             refuse,
-            probe.Outcome(1, "", "Traceback (most recent call last):\nE\n", 0.1),
+            Outcome(1, "", "Traceback (most recent call last):\nE\n", 0.1),
             {},
             {},
         ),  # fmt: skip
-        "a hang": (refuse, probe.Outcome(-9, "", "", 60.0, timed_out=True), {}, {}),
-        "good work": (work, probe.Outcome(0, "ok", "", 0.1), {}, {"f": "1"}),
-        "good input refused": (work, probe.Outcome(1, "", line, 0.1), {}, {}),
+        "a hang": (refuse, Outcome(-9, "", "", 60.0, timed_out=True), {}, {}),
+        "good work": (work, Outcome(0, "ok", "", 0.1), {}, {"f": "1"}),
+        "good input refused": (work, Outcome(1, "", line, 0.1), {}, {}),
     }
     verdicts = {k: probe.verdict(*v, tmp_path) for k, v in judged.items()}
     assert [k for k, why in verdicts.items() if why is None] == ["good refusal", "good work"]

@@ -5,9 +5,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from probe import Case
-
 from probe_cases.bounds import interrupted, numbers_and_flags, output_paths
+from probe_cases.case import Case
 from probe_cases.common import make_base
 from probe_cases.late import too_late
 from probe_cases.malformed import malformed

@@ -17,8 +17,8 @@ import os
 from pathlib import Path
 
 import numpy as np
-from probe import Case, Outcome
 
+from probe_cases.case import Case, Outcome
 from probe_cases.common import RESUME, fifo, npz, run_copy, then
 
 BIG = str(2**31)

@@ -16,7 +16,8 @@ import sqlite3
 from pathlib import Path
 
 import numpy as np
-from probe import Outcome
+
+from probe_cases.case import Outcome
 
 RUNS = {
     "A": ("td3bc", 0, "tiny.npz", "32,32", 1),

@@ -7,8 +7,8 @@ import math
 from pathlib import Path
 
 import numpy as np
-from probe import Case, Outcome
 
+from probe_cases.case import Case, Outcome
 from probe_cases.common import SCHEDULE, npz, run_copy, then, write
 
 

@@ -9,8 +9,8 @@ import zipfile
 from pathlib import Path
 
 import numpy as np
-from probe import Case, Outcome
 
+from probe_cases.case import Case, Outcome
 from probe_cases.common import (
     EVAL,
     EXPORT,

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from probe import Case, Outcome
-
+from probe_cases.case import Case, Outcome
 from probe_cases.common import original, run_copy, then, write
 
 

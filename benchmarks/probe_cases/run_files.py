@@ -5,8 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from probe import Case
-
+from probe_cases.case import Case
 from probe_cases.common import (
     EVAL,
     EXPORT,

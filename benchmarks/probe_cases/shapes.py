@@ -5,8 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from probe import Case, Outcome
-
+from probe_cases.case import Case, Outcome
 from probe_cases.common import EVAL, run_copy, write
 
 VALUES = ["0", "-1", "-100", "1.5", "nan", "inf", "1e400", "99999999999999999999", "0x10", "",
