@@ -14,7 +14,7 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 
-from eabc.data import antmaze_collect, generate, mazes, tasks
+from eabc.data import antmaze_collect, hdf5_writer, mazes, tasks
 from eabc.data.dataset import Dataset
 
 ENV_ID = "eabc-test/PointUMaze-v0"
@@ -117,4 +117,4 @@ def make_dataset(path: str | Path, episodes: int, seed: int, family: str = "dive
         reward_offset=tasks.reward_offset(("antmaze", "umaze")),
         metadata={"family": family, "seed": seed},
     )
-    return generate.save_hdf5(dataset, path)
+    return hdf5_writer.save_hdf5(dataset, path)

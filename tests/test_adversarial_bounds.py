@@ -440,7 +440,7 @@ def test_a_signal_inside_an_h5py_callback_still_stops_the_write(tmp_path, monkey
 
     import h5py  # noqa: PLC0415
 
-    from eabc.data import generate  # noqa: PLC0415
+    from eabc.data import hdf5_writer  # noqa: PLC0415
     from eabc.data.dataset import Dataset  # noqa: PLC0415
 
     real = h5py.Group.create_dataset
@@ -462,7 +462,7 @@ def test_a_signal_inside_an_h5py_callback_still_stops_the_write(tmp_path, monkey
                       next_observations=rows, timeouts=rows[:, 0] > 0, name="x")  # fmt: skip
     try:
         with pytest.raises(KeyboardInterrupt):
-            generate.save_hdf5(dataset, tmp_path / "x.hdf5")
+            hdf5_writer.save_hdf5(dataset, tmp_path / "x.hdf5")
     finally:
         signal.signal(signal.SIGINT, previous)
     assert not list(tmp_path.iterdir())

@@ -382,7 +382,7 @@ def test_the_first_recipe_stays_makeable_and_loadable_by_name(tmp_path, monkeypa
     recipe's, and is kept under its recipe's name rather than overwritten."""
     import hashlib
 
-    from eabc.data import antmaze_collect, generate, loaders
+    from eabc.data import antmaze_collect, generate, hdf5_writer, loaders
 
     assert "antmaze-umaze@planner-v0" in generate.builtin_names()
     assert antmaze_collect.split_name("antmaze-umaze") == ("antmaze-umaze", "faithful-v1")
@@ -407,7 +407,7 @@ def test_the_first_recipe_stays_makeable_and_loadable_by_name(tmp_path, monkeypa
     assert data.metadata["antmaze_recipe"] == "planner-v0" and data.reward_offset == -1.0
     # a cache from before recipes: the same file under the plain name, no recipe recorded
     metadata = {k: v for k, v in data.metadata.items() if k != "antmaze_recipe"}
-    plain = generate.save_hdf5(
+    plain = hdf5_writer.save_hdf5(
         dataclasses.replace(data, name="antmaze-umaze", metadata=metadata),
         cache / "antmaze-umaze.hdf5",
     )
@@ -511,7 +511,7 @@ def made(tmp_path_factory, policy):
 
 
 def test_made_antmaze_dataset_has_d4rls_layout_rewards_and_settings(made):
-    from eabc.data import antmaze_collect, generate, loaders
+    from eabc.data import antmaze_collect, describe, generate, loaders
 
     data = loaders.load_file(made[0])
     assert data.size == 1500 and data.obs_dim == 29 and data.act_dim == 8
@@ -532,7 +532,7 @@ def test_made_antmaze_dataset_has_d4rls_layout_rewards_and_settings(made):
     controller = data.metadata["controller"]
     assert controller["family"] == "diverse" and controller["episodes"] == 2
     assert data.metadata["antmaze_recipe"] == controller["recipe"]["name"] == "faithful-v1"
-    info = generate.describe_dataset(data)["antmaze"]
+    info = describe.describe_dataset(data)["antmaze"]
     assert info["reward_1_transitions"] == int(expected.sum())
     assert info["position_jumps_without_timeout"]["count"] == 0
     assert info["controller_success_rate"] == controller["success_rate"]

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from minari.data_collector import EpisodeBuffer
 
-from eabc.data import generate, tasks
+from eabc.data import describe, generate, hdf5_writer, tasks
 from eabc.data.dataset import Dataset, DatasetError, Normalizer
 from eabc.data.loaders import load_file, save_npz
 from eabc.data.sources import load_dataset
@@ -50,7 +50,7 @@ def small(n=50, obs=3, act=2, seed=0, **kw):
 
 def test_npz_and_hdf5_round_trip(tmp_path, pendulum_dataset):
     save_npz(pendulum_dataset, tmp_path / "d.npz")
-    generate.save_hdf5(pendulum_dataset, tmp_path / "d.hdf5")
+    hdf5_writer.save_hdf5(pendulum_dataset, tmp_path / "d.hdf5")
     for path in (tmp_path / "d.npz", tmp_path / "d.hdf5"):
         loaded = load_dataset(path)
         for key in (
@@ -241,7 +241,7 @@ def test_export_of_a_file_without_next_observations_keeps_its_episodes(tmp_path,
     )
     data = load_dataset(tmp_path / "pend.npz")
     np.testing.assert_array_equal(np.flatnonzero(data.timeouts), [2])
-    assert generate.describe_dataset(data)["episodes"] == 3
+    assert describe.describe_dataset(data)["episodes"] == 3
     export_minari(data, "test/pendulum/no-next-v0")
     episodes = list(minari.load_dataset("test/pendulum/no-next-v0").iterate_episodes())
     assert [len(e.rewards) for e in episodes] == [3, 5, 3]

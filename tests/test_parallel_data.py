@@ -15,7 +15,7 @@ import pytest
 
 from eabc import cli
 from eabc.cli import main
-from eabc.data import antmaze_collect, generate, parallel
+from eabc.data import antmaze_collect, generate, hdf5_writer, parallel
 from eabc.data.dataset import FIELDS
 from eabc.data.loaders import load_file
 
@@ -127,7 +127,7 @@ def test_an_interrupted_write_leaves_no_temporary_file(tmp_path, monkeypatch):
     with monkeypatch.context() as patch:
         patch.setattr("h5py.Group.create_dataset", interrupted)
         with pytest.raises(KeyboardInterrupt):
-            generate.save_hdf5(data, tmp_path / "e.hdf5")
+            hdf5_writer.save_hdf5(data, tmp_path / "e.hdf5")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["d.hdf5"]
     # One killed outright (no cleanup possible) is removed by the next write of that file.
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
@@ -135,7 +135,7 @@ def test_an_interrupted_write_leaves_no_temporary_file(tmp_path, monkeypatch):
     orphan = tmp_path / f"e.hdf5.{dead}.tmp"
     orphan.write_bytes(b"half")
     os.utime(orphan, (0, 0))
-    generate.save_hdf5(data, tmp_path / "e.hdf5")
+    hdf5_writer.save_hdf5(data, tmp_path / "e.hdf5")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["d.hdf5", "e.hdf5"]
 
 

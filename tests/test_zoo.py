@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from eabc import cli, networks
-from eabc.data import generate, zoo
+from eabc.data import generate, hdf5_writer, zoo
 from eabc.data.loaders import load_file
 from eabc.training import online, zoo_build
 
@@ -70,8 +70,8 @@ def test_policy_dataset_layout_boundaries_and_determinism(tiny_zoo, tmp_path):
     again = generate.make("hopper-medium", tmp_path / "b.hdf5", seed=3, size=2500, zoo_root=root)
     other = generate.make("hopper-medium", tmp_path / "c.hdf5", seed=4, size=2500, zoo_root=root)
     with h5py.File(path) as f, h5py.File(again) as g, h5py.File(other) as h:
-        assert set(f.keys()) == set(generate._ARRAYS)
-        for key in generate._ARRAYS:
+        assert set(f.keys()) == set(hdf5_writer.ARRAYS)
+        for key in hdf5_writer.ARRAYS:
             expected = bool if key in ("terminals", "timeouts") else np.float32
             assert f[key].dtype == expected and len(f[key]) == 2500
             np.testing.assert_array_equal(f[key][:], g[key][:])
@@ -295,7 +295,7 @@ def test_expert_is_the_best_of_the_last_snapshots_asked_for(tiny_zoo, tmp_path, 
 ROLLOUT = """
 import hashlib, sys
 import h5py
-from eabc.data import generate
+from eabc.data import generate, hdf5_writer
 generate.make("hopper-medium", sys.argv[1], seed=0, size=int(sys.argv[2]))
 with h5py.File(sys.argv[1]) as f:
     print(hashlib.sha256(f["observations"][:].tobytes() + f["actions"][:].tobytes()).hexdigest())

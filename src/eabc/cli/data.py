@@ -150,7 +150,7 @@ class DataExport:
 
 
 def run_data(cmd: DataMake | DataInfo | DataList | DataExport) -> None:
-    from eabc.data import generate, loaders, sources  # noqa: PLC0415
+    from eabc.data import describe, generate, loaders, sources  # noqa: PLC0415
     from eabc.data.dataset import DatasetError  # noqa: PLC0415
     from eabc.training.config import check_cache_dir  # noqa: PLC0415
 
@@ -172,12 +172,12 @@ def run_data(cmd: DataMake | DataInfo | DataList | DataExport) -> None:
         print(header)
         for name in generate.builtin_names():
             path = generate.dataset_path(name, cmd.cache_dir)
-            level = _number(generate.d4rl_level(name), 5, ".0f")
+            level = _number(describe.d4rl_level(name), 5, ".0f")
             if not path.exists():
                 print(f"{name:26s} {'-':>11s} {'-':>8s} {'-':>17s} {'-':>6s} {level}  (not made)")
                 continue
             try:  # one unreadable file is one row, not the end of the list
-                info = generate.describe(path)
+                info = describe.describe(path)
             except (DatasetError, OSError) as error:
                 why = " ".join(str(error).split())
                 print(
@@ -212,7 +212,7 @@ def run_data(cmd: DataMake | DataInfo | DataList | DataExport) -> None:
         if cmd.plot is not None and not Path(cmd.plot).expanduser().parent.is_dir():
             raise ValueError(f"--plot {cmd.plot}: its directory does not exist; make it first")
         dataset = sources.load_dataset(cmd.name, cmd.cache_dir, make=False)  # describes only
-        print(json.dumps(generate.describe_dataset(dataset), indent=2))
+        print(json.dumps(describe.describe_dataset(dataset), indent=2))
         if cmd.plot is not None:
             from eabc.data import antmaze_collect  # noqa: PLC0415
 

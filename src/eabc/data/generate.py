@@ -8,12 +8,8 @@ controller (:mod:`eabc.data.antmaze_collect`).
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
-import signal
-import threading
-import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -23,6 +19,7 @@ import numpy as np
 from eabc import progress, timing
 from eabc.data import parallel, tasks
 from eabc.data.dataset import Dataset, DatasetError, concatenate
+from eabc.data.hdf5_writer import ARRAYS, save_hdf5
 from eabc.data.loaders import load_file
 from eabc.paths import cache_dir
 
@@ -214,7 +211,7 @@ def make(
             part: d.metadata.get("policy") for part, d in zip(("medium", "expert"), parts)
         }
     dataset = Dataset(
-        **{k: getattr(dataset, k) for k in _ARRAYS},
+        **{k: getattr(dataset, k) for k in ARRAYS},
         name=name,
         env_id=env.env_id,
         ref_min_score=env.ref_min_score,
@@ -256,7 +253,7 @@ def _make_antmaze(name: str, kind: str, path, seed: int, size: int, zoo_root, wo
         "controller": controller,
     }
     dataset = Dataset(
-        **{k: getattr(dataset, k) for k in _ARRAYS},
+        **{k: getattr(dataset, k) for k in ARRAYS},
         name=name,
         env_id=env.env_id,
         ref_min_score=env.ref_min_score,
@@ -439,9 +436,6 @@ def _load_or_make_part(path: Path, size: int, seed: int, zoo_root, workers: int)
         tmp.unlink(missing_ok=True)
 
 
-_ARRAYS = ("observations", "actions", "rewards", "next_observations", "terminals", "timeouts")
-
-
 def rollout(
     env_id: str,
     act: ActionFn | None,
@@ -467,139 +461,3 @@ def rollout(
         out["timeouts"][-1] = True
     env.close()
     return Dataset(**out, name=desc, env_id=env_id)
-
-
-def save_hdf5(dataset: Dataset, path: str | os.PathLike) -> Path:
-    """Write D4RL's HDF5 layout plus our metadata; atomic (temporary file, then rename)."""
-    import h5py  # noqa: PLC0415
-
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    _remove_orphans(path)
-    tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")  # two makers never share a file
-    try:
-        with _signals_held() as raise_held, h5py.File(tmp, "w") as f:
-            for key in _ARRAYS:
-                raise_held()
-                f.create_dataset(
-                    key, data=getattr(dataset, key), compression="gzip", compression_opts=1
-                )
-            f.attrs["name"] = dataset.name
-            f.attrs["env_id"] = dataset.env_id or ""
-            if dataset.ref_min_score is not None:
-                f.attrs["ref_min_score"] = dataset.ref_min_score
-                f.attrs["ref_max_score"] = dataset.ref_max_score
-            if dataset.reward_offset is not None:
-                f.attrs["reward_offset"] = dataset.reward_offset
-            f.attrs["metadata"] = json.dumps(dataset.metadata)
-            f.close()
-            raise_held()
-        os.replace(tmp, path)
-    except BaseException:  # interrupted (Ctrl-C, a terminate signal) or failed: no half file
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
-
-
-_HELD_SIGNALS = (signal.SIGINT, signal.SIGTERM)
-
-
-@contextlib.contextmanager
-def _signals_held():
-    """Ctrl-C and SIGTERM noted, not acted on, while h5py writes; yields a function that acts on
-    a noted one (its own handler raises KeyboardInterrupt or SystemExit) at a point where that is
-    safe. Why: h5py frees its objects in weakref callbacks, and an exception a signal handler
-    raises there is printed as "Exception ignored" and dropped, so Ctrl-C during a write was lost
-    and the command ended 0 as if never interrupted."""
-    if threading.current_thread() is not threading.main_thread():
-        yield lambda: None  # only the main thread receives signals or may set handlers
-        return
-    noted: list[tuple[int, object]] = []
-    previous = {number: signal.getsignal(number) for number in _HELD_SIGNALS}
-    for number, handler in previous.items():
-        if callable(handler):  # one that is ignored stays ignored
-            signal.signal(number, lambda signum, frame: noted.append((signum, frame)))
-
-    def raise_held() -> None:
-        if noted:
-            signum, frame = noted[0]
-            previous[signum](signum, frame)
-
-    try:
-        yield raise_held
-    finally:
-        for number, handler in previous.items():
-            if handler is not None:
-                signal.signal(number, handler)
-        raise_held()  # a signal noted after the last check still ends the command
-
-
-def _remove_orphans(path: Path, quiet_s: float = 60.0) -> None:
-    """Remove temporary files of ``path`` left by makers killed outright (no chance to clean up):
-    their process is gone from this machine and they have not changed for ``quiet_s`` seconds
-    (a maker on another machine sharing the cache keeps writing to its own)."""
-    for tmp in path.parent.glob(f"{path.name}.*.tmp"):
-        pid = tmp.name.removeprefix(f"{path.name}.").removesuffix(".tmp")
-        if not pid.isdigit():
-            continue
-        try:
-            os.kill(int(pid), 0)
-            continue  # alive
-        except ProcessLookupError:
-            pass
-        except PermissionError:
-            continue  # alive, another user's
-        with contextlib.suppress(FileNotFoundError):
-            if time.time() - tmp.stat().st_mtime > quiet_s:
-                tmp.unlink()
-
-
-def d4rl_level(name: str) -> float | None:
-    """The mean normalised return of D4RL's dataset of this name (docs/algorithm.md#datasets)."""
-    from eabc.data import zoo  # noqa: PLC0415
-
-    task = tasks.parse_task(name)
-    return None if task is None else zoo.D4RL_LEVEL.get(task[1], {}).get(task[0])
-
-
-def describe_dataset(dataset: Dataset) -> dict:
-    """Size, episodes, returns and normalised return beside D4RL's level."""
-    returns = dataset.episode_returns()
-    mean = float(returns.mean()) if len(returns) else float("nan")
-    info = {
-        "name": dataset.name,
-        "env_id": dataset.env_id,
-        "transitions": dataset.size,
-        "episodes": len(returns),
-        "terminals": int(dataset.terminals.sum()),
-        "timeouts": int(dataset.timeouts.sum()),
-        "return_mean": mean,
-        "return_std": float(returns.std()) if len(returns) else float("nan"),
-        "normalized_return": dataset.normalized_score(mean),
-        "d4rl_normalized_return": d4rl_level(dataset.name),
-        "metadata": dataset.metadata,
-    }
-    if dataset.env_id in tasks.antmaze_env_ids():
-        from eabc.data import antmaze_collect  # noqa: PLC0415
-
-        info["antmaze"] = antmaze_collect.checks(dataset)
-    return info
-
-
-def describe(path: str | os.PathLike) -> dict:
-    """:func:`describe_dataset` of a cached file, remembered in a sidecar ``.info.json``."""
-    path = Path(path)
-    sidecar = path.with_suffix(".info.json")
-    if sidecar.is_file() and sidecar.stat().st_mtime >= path.stat().st_mtime:
-        try:  # a damaged sidecar is only a lost shortcut: described again below
-            info = json.loads(sidecar.read_text())
-            if isinstance(info, dict):
-                return info
-        except (OSError, ValueError):
-            pass
-    info = describe_dataset(load_file(path))
-    try:
-        sidecar.write_text(json.dumps(info, indent=2))
-    except OSError:  # a read-only cache: described every time
-        pass
-    return info
