@@ -8,7 +8,7 @@ import pytest
 from test_report import make_results
 
 from eabc.cli import main
-from eabc.experiments import report, results
+from eabc.experiments import archive_merge, report
 
 pytestmark = pytest.mark.usefixtures("quick_figures")  # tables and text, not figures
 
@@ -23,7 +23,7 @@ def test_a_report_read_back_makes_the_same_tables(tmp_path):
     runs, evaluations = make_results()
     first = _archive(tmp_path, runs, evaluations)
     nothing = (runs.iloc[:0], evaluations.iloc[:0])  # a new machine's empty root
-    again = results.merge(nothing, results.read_archive(first))
+    again = archive_merge.merge(nothing, archive_merge.read_archive(first))
     second = tmp_path / "again"
     report.write_report(*again, second)
     for name in ("table.md", "comparison.md", "aggregate.md", "stability.md"):
@@ -54,7 +54,7 @@ def test_the_copy_that_trained_more_steps_wins_and_brings_its_own_evaluations():
         ]
     )
     archived = (done.assign(source="docs/results/x"), evals)
-    merged, merged_evals = results.merge((live, live_evals), archived, live_source="sweeps/x")
+    merged, merged_evals = archive_merge.merge((live, live_evals), archived, live_source="sweeps/x")
 
     by_id = merged.set_index("run_id")
     assert len(merged) == 5 and merged["run_id"].is_unique
@@ -97,13 +97,13 @@ def test_the_command_reports_archived_and_live_runs_together(tmp_path):
 
 def test_what_is_not_a_report_is_refused_with_what_to_give(tmp_path):
     with pytest.raises(FileNotFoundError, match="runs.csv or evaluations.csv.*eabc report"):
-        results.read_archive(tmp_path)
+        archive_merge.read_archive(tmp_path)
     (tmp_path / "runs.csv").write_text("a,b\n1,2\n")
     (tmp_path / "evaluations.csv").write_text(
         "run_id,step,score,score_std,return_mean,return_std\n"
     )
     with pytest.raises(ValueError, match="runs.csv lacks the column.*run_id"):
-        results.read_archive(tmp_path)
+        archive_merge.read_archive(tmp_path)
     with pytest.raises(SystemExit, match="does not exist"):
         main(["report", str(tmp_path / "nothing")])
 
@@ -111,10 +111,10 @@ def test_what_is_not_a_report_is_refused_with_what_to_give(tmp_path):
 def test_another_sweep_root_is_read_from_its_run_directories_even_before_its_first_run(tmp_path):
     root = tmp_path / "sweeps" / "b"
     (root / "runs").mkdir(parents=True)  # begun, no run directory yet
-    runs, evaluations = results.read_archive(root)
+    runs, evaluations = archive_merge.read_archive(root)
     assert runs.empty and evaluations.empty and "source" in runs
     with pytest.raises(FileNotFoundError, match="or a sweep root"):
-        results.read_archive(tmp_path / "sweeps")  # neither a report nor a root
+        archive_merge.read_archive(tmp_path / "sweeps")  # neither a report nor a root
 
 
 def test_finished_leaves_out_the_runs_still_training(tmp_path, capsys):
@@ -147,8 +147,8 @@ def test_a_run_trained_twice_is_checked_copy_against_copy(tmp_path, capsys):
     again_evals = evaluations[evaluations["run_id"].isin([one, two])].copy()
     off = again_evals.index[again_evals["run_id"] == two][3]
     again_evals.loc[off, "score"] += 0.25
-    found = results.repeats(
-        (again, again_evals), results.read_archive(archive), live_source="elsewhere"
+    found = archive_merge.repeats(
+        (again, again_evals), archive_merge.read_archive(archive), live_source="elsewhere"
     ).set_index("run_id")
     assert list(found.index) == [one, two]  # not three, nor any run read from one place only
     assert bool(found.loc[one, "identical"]) and found.loc[one, "max_score_difference"] == 0

@@ -15,7 +15,7 @@ import pytest
 from packaging.requirements import Requirement
 
 from eabc import cli
-from eabc.experiments import job_process, planning, results, study
+from eabc.experiments import archive_merge, job_process, planning, study
 from eabc.experiments.spec import expand
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -34,7 +34,7 @@ def test_the_device_script_smoke_run_streams_finished_runs_that_report_reads(tmp
     )
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
     assert sorted(p.name for p in out.iterdir()) == sorted(study.OUT_FILES)
-    runs, evaluations = results.read_archive(out)
+    runs, evaluations = archive_merge.read_archive(out)
     hoppers = ("hopper-medium", "hopper-medium-replay", "hopper-random")
     assert sorted(runs["run_id"]) == sorted(
         f"runs/{data}__{algo}__seed{seed}"

@@ -214,7 +214,7 @@ def test_a_run_another_root_has_done_or_is_training_is_left_to_it(
     import yaml
 
     from eabc.data.loaders import save_npz
-    from eabc.experiments import results
+    from eabc.experiments import archive_merge
     from eabc.experiments.spec import expand
     from eabc.training.lock import OWNER
 
@@ -248,7 +248,7 @@ def test_a_run_another_root_has_done_or_is_training_is_left_to_it(
     assert run_status.status(free, root)[0] == "done"
 
     # The report stands on both roots: the other's finished run with its score.
-    runs, _ = results.read_archive(other)
+    runs, _ = archive_merge.read_archive(other)
     assert list(runs["run_id"]) == [f"{run_status.RUNS}/{done.run_id}"]
     assert runs["final_score"].iloc[0] == 42.0 and runs["source"].iloc[0] == str(other)
     main(["report", str(root), "--include", str(other), "--out", str(tmp_path / "report")])

@@ -227,7 +227,15 @@ def _run_sweep(cmd: Sweep) -> None:
     import yaml  # noqa: PLC0415
 
     from eabc.data import sources  # noqa: PLC0415
-    from eabc.experiments import job_process, local_pool, planning, ray_pool, results, run_status  # noqa: PLC0415
+    from eabc.experiments import (  # noqa: PLC0415
+        archive_merge,
+        job_process,
+        local_pool,
+        planning,
+        ray_pool,
+        results,
+        run_status,
+    )
     from eabc.experiments.spec import expand  # noqa: PLC0415
 
     root = paths.expand(cmd.root)
@@ -236,7 +244,9 @@ def _run_sweep(cmd: Sweep) -> None:
         sources.check_source(dataset)
     run_status.check_names(runs, root)  # and every run's name, in a dry run too
     if cmd.include:
-        archived = run_status.archived_done(runs, [results.read_archive(d) for d in cmd.include])
+        archived = run_status.archived_done(
+            runs, [archive_merge.read_archive(d) for d in cmd.include]
+        )
         if archived:
             print(f"{len(archived)} runs done in {', '.join(cmd.include)}: not run again")
         runs = [r for r in runs if r.run_id not in archived]
@@ -295,7 +305,9 @@ def _run_sweep(cmd: Sweep) -> None:
             ray_pool.run_ray(job_list, root, cmd.ray_address, cmd.cpus_per_job, cmd.gpus_per_job)
         else:
             others = [
-                Path(d) for d in cmd.include if not (Path(d) / results.ARCHIVE_FILES[0]).is_file()
+                Path(d)
+                for d in cmd.include
+                if not (Path(d) / archive_merge.ARCHIVE_FILES[0]).is_file()
             ]
             local_pool.run_local(
                 job_list, root, cmd.workers, single_thread=layout == "processes",
@@ -374,7 +386,7 @@ def shown(table):
 
 
 def run_report(cmd: Report) -> None:
-    from eabc.experiments import report, results  # noqa: PLC0415
+    from eabc.experiments import archive_merge, report, results  # noqa: PLC0415
     from eabc.experiments.labels import labelled  # noqa: PLC0415
 
     if not paths.expand(cmd.root).is_dir() and not cmd.include:
@@ -388,15 +400,15 @@ def run_report(cmd: Report) -> None:
     for state, why in zip(runs.loc[unusable, "status"], runs.loc[unusable, "config"]):
         print(f"leaving out a {state} run: {why}", file=sys.stderr)
     runs = runs[~unusable]
-    repeats = results.combined_repeats()  # none without --include: one root holds a run once
+    repeats = archive_merge.combined_repeats()  # none without --include: one root holds a run once
     if cmd.include:
-        archives = [results.read_archive(d) for d in cmd.include]
+        archives = [archive_merge.read_archive(d) for d in cmd.include]
         live = (runs, evaluations)
-        repeats = results.combined_repeats(
-            results.repeats(live, *archives, live_source=str(cmd.root)),
-            *(results.read_repeats(d) for d in cmd.include),
+        repeats = archive_merge.combined_repeats(
+            archive_merge.repeats(live, *archives, live_source=str(cmd.root)),
+            *(archive_merge.read_repeats(d) for d in cmd.include),
         )
-        runs, evaluations = results.merge(live, *archives, live_source=str(cmd.root))
+        runs, evaluations = archive_merge.merge(live, *archives, live_source=str(cmd.root))
     for row in repeats[~repeats["identical"].astype(bool)].itertuples():
         print(
             f"warning: {row.run_id} was trained in {row.sources} and the copies disagree (largest "

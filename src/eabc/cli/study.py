@@ -68,7 +68,7 @@ def run_study(cmd: Study) -> None:
     # Before JAX starts its backend: one process trains the whole queue, growing its memory as
     # the programs need it, instead of taking 75% of the GPU up front.
     os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
-    from eabc.experiments import planning, results, run_status, study  # noqa: PLC0415
+    from eabc.experiments import archive_merge, planning, run_status, study  # noqa: PLC0415
     from eabc.experiments.spec import expand, groups, load_spec  # noqa: PLC0415
 
     if not cmd.specs:  # tyro takes none; a study of nothing would write an empty --out
@@ -93,7 +93,7 @@ def run_study(cmd: Study) -> None:
         seeds = sorted({r.seed for r in runs})[:SMOKE_SEEDS]
         runs = [r for group in groups(runs)[:SMOKE_GROUPS] for r in group if r.seed in seeds]
     if cmd.include:
-        done = run_status.archived_done(runs, [results.read_archive(d) for d in cmd.include])
+        done = run_status.archived_done(runs, [archive_merge.read_archive(d) for d in cmd.include])
         if done:
             print(f"{len(done)} runs done in {', '.join(cmd.include)}: not trained again")
         runs = [r for r in runs if r.run_id not in done]

@@ -120,7 +120,7 @@ def problems(runs: list[RunSpec], root: Path) -> dict[str, list[str]]:
 
 
 def archived_done(runs: list[RunSpec], archives: list[tuple[Any, Any]]) -> set[str]:
-    """The ids of ``runs`` that an earlier report (``results.read_archive``) holds as done with
+    """The ids of ``runs`` that an earlier report (``archive_merge.read_archive``) holds as done with
     at least the steps the spec asks."""
     done = set()
     for table, _ in archives:
