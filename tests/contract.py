@@ -18,7 +18,7 @@ import os
 import jax
 import numpy as np
 
-from eabc import load_policy, pytree
+from eabc import load_policy, pytree, ranges
 from eabc.agents import get_algorithm
 from eabc.agents.contract import Algorithm
 from eabc.training import checkpoint, chunks, lifecycle, trainer
@@ -57,7 +57,7 @@ def _check_contract(tmp_path, pendulum_dataset, algo: str) -> None:
     overrides = tiny_settings(algorithm)
     # Pendulum is in none of the per-dataset tables (EABC's p and q, ReBRAC's betas).
     for name in ("confidence_level", "quantile_level", "actor_bc_weight", "critic_bc_weight"):
-        if name in algorithm.settings() and getattr(algorithm.preset, name) is None:
+        if name in algorithm.settings() and ranges.value_of(algorithm.preset, name) is None:
             overrides[name] = 0.5
     config = TrainConfig(
         dataset="pendulum-swingup",

@@ -204,8 +204,10 @@ def test_algorithm_flags_are_named_in_their_errors(npz):
     """Before: 'eabc: num_critics must be at least 2', and an AttributeError traceback for a
     typed flag of another algorithm."""
     dry = ["train", "--dataset", str(npz), "--dry-run"]
-    _refused([*dry, "--algo", "eabc", "--num-critics", "0"], "--num-critics must be at least 2")
-    _refused([*dry, "--algo", "eabc", "--confidence-level", "7"], "--confidence-level p must")
+    _refused([*dry, "--algo", "eabc", "--num-critics", "0"],
+             r"eabc setting --num-critics must be an integer in \[2, 2147483647\], got 0")  # fmt: skip
+    _refused([*dry, "--algo", "eabc", "--confidence-level", "7"],
+             r"eabc setting --confidence-level must be a finite number in \[0, 1\], got 7.0")  # fmt: skip
     _refused([*dry, "--algo", "bc", "--num-critics", "3"], "--num-critics: bc has no setting")
     _refused([*dry, "--algo", "td3bc", "--set", "alpha=-1"], "--set: td3bc setting alpha")
 
@@ -236,4 +238,4 @@ def test_a_sweep_checks_every_dataset_before_its_first_run(tmp_path, npz):
     spec = {**spec, "datasets": [str(npz)], "algos": ["td3bc"], "grid": {"alpha": [-1.0]}}
     (tmp_path / "spec.yaml").write_text(json.dumps(spec))
     _refused(["sweep", str(tmp_path / "spec.yaml"), "--root", str(tmp_path / "root"),
-              "--dry-run"], "grid: td3bc setting alpha=-1.0")  # fmt: skip
+              "--dry-run"], "grid: td3bc setting alpha must be a finite number >= 0, got -1.0")  # fmt: skip

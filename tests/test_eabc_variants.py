@@ -12,7 +12,7 @@ import pytest
 from handcalc import ACT, OBS, B, member, np_mlp, quick_jit
 from learning import MARGIN, late_gain
 
-from eabc import networks
+from eabc import networks, ranges
 from eabc.agents import bc_weights, eabc
 from eabc.training.config import resolve_agent_config
 
@@ -20,7 +20,8 @@ eabc_update = quick_jit(eabc.update)
 
 
 def tiny(**kw):
-    return dataclasses.replace(eabc.EABCConfig(hidden_dims=(8, 8), num_critics=4), **kw)
+    """A small EABC config with ``kw`` set by name (a BC-weight rule's settings too)."""
+    return ranges.validated(eabc.EABCConfig(hidden_dims=(8, 8), num_critics=4), kw)
 
 
 def np_layer_norm_q(critic, k, obs, act):
@@ -228,7 +229,7 @@ def test_auto_p_rises_when_the_policy_is_less_certain_than_the_data(batch):
     big, _ = bc_weights.adapt_confidence_level(_controller(), batch, _signals(1e6, 1.0), config)
     np.testing.assert_allclose(big["p"], 0.51, rtol=1e-5)
     # The target ratio shifts the set point.
-    shifted = dataclasses.replace(config, auto_spread_ratio=2.0)
+    shifted = ranges.validated(config, {"auto_spread_ratio": 2.0})
     same, _ = bc_weights.adapt_confidence_level(_controller(), batch, _signals(2.0, 1.0), shifted)
     np.testing.assert_allclose(same["p"], 0.5, rtol=1e-6)
 
@@ -252,7 +253,7 @@ def test_calibrated_auto_p_holds_p_then_targets_the_cloning_spread_ratio(batch):
     np.testing.assert_allclose(fall["p"], 1.0 - 0.01 * np.log(2.0), rtol=1e-5)
     np.testing.assert_allclose(m["spread_target"], 0.8, rtol=1e-5)
     # auto_spread_ratio scales the calibrated target.
-    scaled = dataclasses.replace(config, auto_spread_ratio=0.5)
+    scaled = ranges.validated(config, {"auto_spread_ratio": 0.5})
     same, _ = bc_weights.adapt_confidence_level(
         {**controller, "p": jnp.asarray(0.5)}, batch, _signals(0.4, 1.0), scaled, 6
     )
@@ -390,30 +391,30 @@ def test_auto_p_moves_only_on_actor_steps_and_drives_the_mask(batch):
 
 def test_variant_presets_resolve_against_the_dataset():
     quantile = resolve_agent_config("eabc-quantile", "hopper-medium-replay", {})
-    assert quantile.bc_weight == "quantile" and quantile.quantile_level == 0.45
+    assert quantile.bc_rule.bc_weight == "quantile" and quantile.bc_rule.quantile_level == 0.45
     with pytest.raises(ValueError, match="quantile_level"):
         resolve_agent_config("eabc-quantile", "my-data", {})
     # auto needs no p, on any data; published EABC still needs Table 3's.
-    assert resolve_agent_config("eabc-auto", "my-data", {}).bc_weight == "auto"
+    assert resolve_agent_config("eabc-auto", "my-data", {}).bc_rule.bc_weight == "auto"
     eabc_q = resolve_agent_config(
         "eabc", "my-data", {"bc_weight": "quantile", "quantile_level": 0.5}
     )
-    assert eabc_q.quantile_level == 0.5
+    assert eabc_q.bc_rule.quantile_level == 0.5
     with pytest.raises(ValueError, match="confidence level"):
         resolve_agent_config("eabc", "my-data", {})
 
 
 def test_invalid_variant_settings_are_refused():
     with pytest.raises(ValueError, match="bc_weight"):
-        eabc.EABCConfig(bc_weight="sometimes")
+        bc_weights.BCWeightConfig(bc_weight="sometimes")
     with pytest.raises(ValueError, match="quantile_level"):
-        eabc.EABCConfig(quantile_level=1.5)
+        bc_weights.BCWeightConfig(quantile_level=1.5)
     with pytest.raises(ValueError, match="auto_min_p"):
-        eabc.EABCConfig(auto_min_p=0.8, auto_initial_p=0.5)
+        bc_weights.BCWeightConfig(auto_min_p=0.8, auto_initial_p=0.5)
     with pytest.raises(ValueError, match="pessimism_beta"):
         eabc.EABCConfig(pessimism_beta=-1.0)
     with pytest.raises(ValueError, match="auto_calibration_steps"):
-        eabc.EABCConfig(auto_calibration_steps=-5)
+        bc_weights.BCWeightConfig(auto_calibration_steps=-5)
 
 
 def test_eabc_auto_learns(tmp_path, pendulum_dataset):

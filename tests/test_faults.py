@@ -18,7 +18,6 @@ import time
 import h5py
 import numpy as np
 import pytest
-from eabc.agents.validation import SettingError
 
 from eabc.cli import main
 from eabc.data.dataset import Dataset, DatasetError
@@ -26,6 +25,7 @@ from eabc.data.loaders import save_npz
 from eabc.data.sources import load_dataset
 from eabc.experiments import job_process, local_pool, planning, results, run_status
 from eabc.experiments.spec import expand
+from eabc.ranges import SettingError
 from eabc.training import checkpoint, chunks, lifecycle, logger, trainer
 from eabc.training.checkpoint import CheckpointError
 from eabc.training.config import TrainConfig, resolve_agent_config
@@ -226,13 +226,13 @@ def test_bad_flags_and_settings_are_refused(tmp_path, pendulum_dataset):
         with pytest.raises(DatasetError, match="terminals must be 0 or 1"):
             Dataset(obs, act, np.zeros(n), obs, np.array([0, bad, 0, 0]), np.zeros(n))
     for setting, message in [
-        ({"tau": -1}, r"tau=-1.0 must be in \(0, 1\]"),
-        ({"actor_lr": -1}, "actor_lr=-1.0 must be > 0"),
-        ({"discount": 1.5}, r"discount=1.5 must be in \[0, 1\)"),
-        ({"alpha": float("nan")}, "alpha=nan must be finite and >= 0"),  # not "must be >= 0"
-        ({"tau": float("nan")}, r"tau=nan must be finite and in \(0, 1\]"),
-        ({"policy_freq": 1.5}, "policy_freq=1.5 is not valid"),
-        ({"behavior_cloning": "maybe"}, "must be true or false"),
+        ({"tau": -1}, r"tau must be a finite number in \(0, 1\], got -1.0"),
+        ({"actor_lr": -1}, "actor_lr must be a finite number > 0, got -1.0"),
+        ({"discount": 1.5}, r"discount must be a finite number in \[0, 1\), got 1.5"),
+        ({"alpha": float("nan")}, "alpha must be a finite number >= 0, got nan"),
+        ({"tau": float("nan")}, r"tau must be a finite number in \(0, 1\], got nan"),
+        ({"policy_freq": 1.5}, r"policy_freq must be an integer in \[1, 2147483647\], got 1.5"),
+        ({"behavior_cloning": "maybe"}, "behavior_cloning must be true or false, got 'maybe'"),
     ]:
         with pytest.raises(SettingError, match=message):
             resolve_agent_config("eabc", "x", {**AGENT, **setting})

@@ -13,6 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from eabc import ranges
 from eabc.agents import get_algorithm
 from eabc.data.dataset import Normalizer
 from eabc.data.loaders import save_npz
@@ -129,7 +130,7 @@ def _fake_run(name="a", algo="eabc", obs_dim=3, max_action=2.0, **settings):
     algorithm = get_algorithm(algo)
     return SimpleNamespace(
         algorithm=algorithm,
-        agent_config=dataclasses.replace(algorithm.preset, **settings),
+        agent_config=ranges.validated(algorithm.preset, settings),
         config=TrainConfig(dataset=f"{name}.npz", algo=algo, seed=len(name)),
         dataset=SimpleNamespace(obs_dim=obs_dim, act_dim=1),
         max_action=max_action,

@@ -81,19 +81,37 @@ HAND_EDITS = {
     "missing algo": (lambda c: without(c, "train", "algo"), "train.algo is missing"),
     "extra key": (lambda c: {**c, "notes": "mine"}, "notes is not a key"),
     "extra train key": (lambda c: setting(c, "train", "lr", 1e-3), "train.lr is not a key"),
-    "steps as text": (lambda c: setting(c, "train", "steps", "200"), "train.steps: .*'200'"),
-    "seed as text": (lambda c: setting(c, "train", "seed", "zero"), "train.seed: .*'zero'"),
-    "seed negative": (lambda c: setting(c, "train", "seed", -1), "train.seed: .*-1"),
-    "steps as bool": (lambda c: setting(c, "train", "steps", True), "train.steps: .*True"),
-    "algo unknown": (lambda c: setting(c, "train", "algo", "td4"), "train.algo: 'td4' is not an"),
-    "intervals": (lambda c: setting(c, "train", "eval_interval", 150), "train: eval_interval"),
+    "steps as text": (
+        lambda c: setting(c, "train", "steps", "200"),
+        "train.steps must be an integer .*'200'",
+    ),
+    "seed as text": (
+        lambda c: setting(c, "train", "seed", "zero"),
+        "train.seed must be an integer .*'zero'",
+    ),
+    "seed negative": (
+        lambda c: setting(c, "train", "seed", -1),
+        "train.seed must be an integer .*-1",
+    ),
+    "steps as bool": (
+        lambda c: setting(c, "train", "steps", True),
+        "train.steps must be an integer .*True",
+    ),
+    "algo unknown": (
+        lambda c: setting(c, "train", "algo", "td4"),
+        "train.algo: unknown algorithm 'td4'",
+    ),
+    "intervals": (
+        lambda c: setting(c, "train", "eval_interval", 150),
+        "train.eval_interval must be a multiple",
+    ),
     "train a list": (lambda c: {**c, "train": [1, 2]}, "train: input should be a valid dict"),
     "dataset a string": (lambda c: {**c, "dataset": "tiny"}, "dataset: input should be a valid"),
     "size as text": (lambda c: setting(c, "dataset", "size", "39"), "dataset.size: .*'39'"),
     "agent a string": (lambda c: {**c, "agent": "x"}, "agent: input should be a valid dict"),
     "agent setting": (
         lambda c: setting(c, "agent", "num_critics", "two"),
-        "agent: td3bc setting num_critics='two'",
+        "agent: td3bc setting num_critics must be an integer .*, got 'two'",
     ),
     "max_action as text": (lambda c: {**c, "max_action": "2"}, "max_action: .*'2'"),
 }

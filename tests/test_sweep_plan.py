@@ -276,7 +276,7 @@ BASE = {"datasets": ["hopper-random"], "algos": ["bc"]}
         ({"datasets": [5]}, r"^datasets\[0\] must be a name \(text\), got 5$"),
         ({"grid": {"num_critics": []}}, r"^grid.num_critics is empty"),
         ({"grid": ["num_critics"]}, r"^grid must be a mapping of setting -> values"),
-        ({"train": {"eval_episodes": True}}, r"^bad train setting eval_episodes: .*got True$"),
+        ({"train": {"eval_episodes": True}}, r"^bad train setting: eval_episodes must be an integer >= 1, got True$"),
         ({"train": {"checkpoint_interval": 0}}, r"^bad train setting: checkpoint_interval must be an integer in \[1, 2147483647\]"),
         ({"train": "fast"}, r"^train must be a mapping of TrainConfig settings"),
         ({"variants": [{"algo": "td3bc", "datasets": 5}]}, r"'datasets' must be a non-empty list"),

@@ -15,6 +15,7 @@ import optax
 import pytest
 from handcalc import ACT, OBS, make_batch
 
+from eabc import ranges
 from eabc.agents import bc_weights, eabc, get_algorithm, rebrac, wpc
 from eabc.agents.common import Batch, BatchWithNextActions
 from eabc.training import chunks, lifecycle, trainer
@@ -70,15 +71,15 @@ def _reference_td3(state, critic_loss, actor_loss, actor_args, batch, critic_key
 def _reference_eabc(state, batch, key, config, max_action, actor_turn):
     critic_key, actor_key = jax.random.split(key)
     keep = None
-    if config.bc_weight == "quantile":  # the critics before this step's update
+    if config.bc_rule.bc_weight == "quantile":  # the critics before this step's update
         keep = bc_weights.quantile_keep(state.critic, batch, config)
-    p = state.controller["p"] if config.bc_weight == "auto" else None
+    p = state.controller["p"] if config.bc_rule.bc_weight == "auto" else None
     new, metrics = _reference_td3(
         state, eabc.critic_loss, eabc.actor_loss,
         (batch, actor_key, config, max_action, keep, p), batch, critic_key, config, max_action,
         actor_turn,
     )  # fmt: skip
-    if actor_turn and config.bc_weight == "auto":
+    if actor_turn and config.bc_rule.bc_weight == "auto":
         controller, more = bc_weights.adapt_confidence_level(
             state.controller, batch, metrics, config, new.step
         )
@@ -113,7 +114,7 @@ REFERENCES = {"eabc": _reference_eabc, "rebrac": _reference_rebrac, "wpc": _refe
 def _case(name):
     algo, changes = CASES[name]
     algorithm = get_algorithm(algo)
-    config = dataclasses.replace(algorithm.preset, **{**TINY, **changes})
+    config = ranges.validated(algorithm.preset, {**TINY, **changes})
     module = {"rebrac": "rebrac", "wpc": "wpc"}.get(algo, "eabc")
     return algorithm, config, module
 

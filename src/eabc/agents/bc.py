@@ -14,15 +14,16 @@ import optax
 from eabc import networks, pytree
 from eabc.agents.common import Batch, apply_gradients
 from eabc.agents.contract import Algorithm
+from eabc.ranges import LearningRate, Settings, Widths
 
 
 @dataclasses.dataclass(frozen=True)
-class BCConfig:
+class BCConfig(Settings):
     """Fujimoto & Gu (2021)'s BC baseline: TD3+BC's actor and optimiser without critics."""
 
-    actor_lr: float = 3e-4
+    actor_lr: LearningRate = 3e-4
     """Adam learning rate."""
-    hidden_dims: tuple[int, ...] = (256, 256)
+    hidden_dims: Widths = (256, 256)
     """Hidden layer widths."""
 
 

@@ -36,6 +36,19 @@ import optax
 from eabc import networks, pytree
 from eabc.agents.common import Batch, apply_gradients
 from eabc.agents.contract import Algorithm
+from eabc.ranges import (
+    Count,
+    Discount,
+    Finite,
+    Fraction,
+    LearningRate,
+    NonNegativeCount,
+    PositiveNumber,
+    Probability,
+    Settings,
+    Weight,
+    Widths,
+)
 
 """The actor outputs a tanh-Gaussian; its deterministic action is ``tanh(mean)``."""
 
@@ -47,31 +60,34 @@ VAE_LATENT_CLIP = 0.5
 """Decoded latents are N(0, 1) draws clipped to +-0.5 (the authors' ``decode_multiple``)."""
 
 
+Kernel = Literal["laplacian", "gaussian"]
+
+
 @dataclasses.dataclass(frozen=True)
-class BEARConfig:
+class BEARConfig(Settings):
     """BEAR's settings; the defaults are the authors' MuJoCo settings (aviralkumar2907/BEAR: the
     README's hopper command and "hyper-parameters that generally work well", and ``algos.py``)."""
 
-    kernel: Literal["laplacian", "gaussian"] = "laplacian"
+    kernel: Kernel = "laplacian"
     """MMD kernel: exp(-|x - y|_1 / (2 sigma)) or exp(-|x - y|_2^2 / (2 sigma)) (README)."""
-    mmd_sigma: float = 10.0
+    mmd_sigma: PositiveNumber = 10.0
     """sigma of the kernel (README: 10 with the laplacian kernel, 20 with the gaussian)."""
-    num_samples_match: int = 5
+    num_samples_match: Count = 5
     """n, samples of the actor and of the VAE per state for the MMD (README's
     num_samples_match=5)."""
-    mmd_threshold: float = 0.05
+    mmd_threshold: Weight = 0.05
     """epsilon, the MMD the multiplier aims for (``algos.py``: thresh = 0.05)."""
-    max_log_lagrange: float = 10.0
+    max_log_lagrange: Weight = 10.0
     """Upper clip of log(alpha) (README's lagrange_thresh=10)."""
-    init_log_lagrange: float | None = None
+    init_log_lagrange: Finite | None = None
     """Initial log(alpha); None: a N(0, 1) draw from the seed (the authors' ``torch.randn``)."""
-    lagrange_lr: float = 1e-3
+    lagrange_lr: LearningRate = 1e-3
     """Adam learning rate of log(alpha) (``algos.py``)."""
-    num_target_actions: int = 10
+    num_target_actions: Count = 10
     """m, actions sampled at s' for the target's max (``algos.py``, from BCQ)."""
-    target_mix: float = 0.75
+    target_mix: Probability = 0.75
     """lambda of the soft clipped double-Q target ``lambda min + (1 - lambda) max`` (``algos.py``)."""
-    warmup_steps: int = 20_000
+    warmup_steps: NonNegativeCount = 20_000
     """Steps that train the actor on the MMD alone (``algos.py``: epoch >= 20, with the README's
     eval_freq=1000 iterations per epoch)."""
     target_actor: bool = True
@@ -79,38 +95,27 @@ class BEARConfig:
     actor_q_all_samples: bool = True
     """The actor's Q is averaged over all n samples (``algos.py``); False: the first sample only
     (rlkit's BEAR, which UWAC builds on)."""
-    actor_noise_clip: float | None = 0.5
+    actor_noise_clip: Weight | None = 0.5
     """Clip of the standard-normal noise of the n actor samples (``sample_multiple``: +-0.5);
     None: unclipped (rlkit's TanhGaussianPolicy)."""
-    num_critics: int = 2
+    num_critics: Count = 2
     """Q-networks in the ensemble (``main.py``: ``algos.BEAR(2, ...)``)."""
-    discount: float = 0.99
+    discount: Discount = 0.99
     """gamma (``algos.py``)."""
-    tau: float = 0.005
+    tau: Fraction = 0.005
     """Polyak rate of critic and actor targets (``algos.py``)."""
-    actor_lr: float = 1e-3
+    actor_lr: LearningRate = 1e-3
     """Adam learning rate of the actor (``algos.py``: PyTorch's default Adam)."""
-    critic_lr: float = 1e-3
+    critic_lr: LearningRate = 1e-3
     """Adam learning rate of the critics (PyTorch's default Adam)."""
-    vae_lr: float = 1e-3
+    vae_lr: LearningRate = 1e-3
     """Adam learning rate of the VAE (PyTorch's default Adam)."""
-    hidden_dims: tuple[int, ...] = (400, 300)
+    hidden_dims: Widths = (400, 300)
     """Hidden widths of actor and critics (``RegularActor``, ``EnsembleCritic``)."""
-    vae_hidden_dims: tuple[int, ...] = (750, 750)
+    vae_hidden_dims: Widths = (750, 750)
     """Hidden widths of the VAE's encoder and decoder (``VAE``)."""
-    latent_dim: int | None = None
+    latent_dim: Count | None = None
     """VAE latent size; None: 2 x act_dim (``algos.py``)."""
-
-    def __post_init__(self):
-        if self.kernel not in ("laplacian", "gaussian"):
-            raise ValueError(f"kernel must be 'laplacian' or 'gaussian', got {self.kernel!r}")
-        if self.mmd_sigma <= 0:
-            raise ValueError(f"mmd_sigma must be positive, got {self.mmd_sigma}")
-        for name in ("num_samples_match", "num_target_actions", "num_critics"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
-        if not 0.0 <= self.target_mix <= 1.0:
-            raise ValueError(f"target_mix must lie in [0, 1], got {self.target_mix}")
 
 
 PRESETS: dict[str, BEARConfig] = {"bear": BEARConfig()}

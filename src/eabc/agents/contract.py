@@ -19,6 +19,8 @@ import textwrap
 from collections.abc import Callable, Mapping
 from typing import Any, Literal, Protocol
 
+from eabc import ranges
+
 ActorKind = Literal["deterministic", "tanh-gaussian"]
 
 CRITIC_METRICS = frozenset({"critic_loss", "q_mean", "q_ensemble_std", "target_mean"})
@@ -139,8 +141,9 @@ class Algorithm:
         return self.actor == "tanh-gaussian"
 
     def settings(self) -> set[str]:
-        """The names of every setting of this algorithm."""
-        return {f.name for f in dataclasses.fields(self.preset)}
+        """The names of every setting of this algorithm (a group's, such as EABC's BC-weight
+        rule's, by their own names: :func:`eabc.ranges.names`)."""
+        return set(ranges.names(type(self.preset)))
 
     def resolved(self, config: Any, dataset_name: str, steps: int | None, given: set[str]) -> Any:
         """``config`` with the settings that depend on the data and the run resolved."""
@@ -153,8 +156,11 @@ class Algorithm:
 
 
 def field_docs(cls: type) -> dict[str, str]:
-    """The one-line docstrings under a config dataclass's fields (its bases' too), by name."""
+    """The one-line docstrings under a config dataclass's fields (its bases' too, and a group's
+    settings', :func:`eabc.ranges.groups`), by name."""
     docs: dict[str, str] = {}
+    for group in ranges.groups(cls).values():
+        docs |= field_docs(group)
     for klass in reversed(cls.__mro__[:-1]):
         try:
             tree = ast.parse(textwrap.dedent(inspect.getsource(klass)))

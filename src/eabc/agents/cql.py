@@ -30,6 +30,7 @@ from eabc import networks, pytree
 from eabc.agents import sac
 from eabc.agents.common import Batch, BuiltOn, apply_gradients
 from eabc.agents.contract import Algorithm
+from eabc.ranges import Count, Discount, Finite, Fraction, LearningRate, Settings, Weight, Widths
 
 """The actor outputs a tanh-Gaussian; its deterministic action is ``tanh(mean)``."""
 
@@ -41,45 +42,37 @@ MAX_ALPHA_PRIME = 1e6
 
 
 @dataclasses.dataclass(frozen=True)
-class CQLConfig:
+class CQLConfig(Settings):
     """CQL's settings; the defaults are young-geng/JaxCQL's for D4RL MuJoCo
     (``ConservativeSAC.get_default_config`` and ``conservative_sac_main.py``)."""
 
-    min_q_weight: float = 5.0
+    min_q_weight: Weight = 5.0
     """alpha of the paper: weight of the conservative gap (JaxCQL cql_min_q_weight; the CQL paper's
     5.0 for Gym MuJoCo)."""
-    num_sampled_actions: int = 10
+    num_sampled_actions: Count = 10
     """n, actions drawn per state from each proposal (JaxCQL cql_n_actions)."""
     lagrange: bool = False
     """Tune the weight alpha' by dual descent towards target_action_gap (JaxCQL cql_lagrange)."""
-    target_action_gap: float = 1.0
+    target_action_gap: Finite = 1.0
     """The gap the Lagrange variant aims for (JaxCQL cql_target_action_gap)."""
-    alpha_prime_lr: float = 3e-4
+    alpha_prime_lr: LearningRate = 3e-4
     """Adam learning rate of log(alpha') (JaxCQL: qf_lr)."""
     backup_entropy: bool = False
     """Subtract alpha log pi(a'|s') in the target (JaxCQL backup_entropy)."""
-    discount: float = 0.99
+    discount: Discount = 0.99
     """gamma (JaxCQL discount)."""
-    tau: float = 0.005
+    tau: Fraction = 0.005
     """Polyak rate of the critic targets (JaxCQL soft_target_update_rate)."""
-    actor_lr: float = 3e-4
+    actor_lr: LearningRate = 3e-4
     """Adam learning rate of the actor (JaxCQL policy_lr)."""
-    critic_lr: float = 3e-4
+    critic_lr: LearningRate = 3e-4
     """Adam learning rate of the critics (JaxCQL qf_lr)."""
-    alpha_lr: float = 3e-4
+    alpha_lr: LearningRate = 3e-4
     """Adam learning rate of log(alpha) (JaxCQL: policy_lr)."""
-    target_entropy: float | None = None
+    target_entropy: Finite | None = None
     """Entropy the temperature aims for (JaxCQL: -act_dim when unset)."""
-    hidden_dims: tuple[int, ...] = (256, 256)
+    hidden_dims: Widths = (256, 256)
     """Hidden layer widths of actor and critics (JaxCQL policy_arch / qf_arch 256-256)."""
-
-    def __post_init__(self):
-        if self.num_sampled_actions < 1:
-            raise ValueError(
-                f"num_sampled_actions must be at least 1, got {self.num_sampled_actions}"
-            )
-        if self.min_q_weight < 0:
-            raise ValueError(f"min_q_weight must be non-negative, got {self.min_q_weight}")
 
 
 PRESETS: dict[str, CQLConfig] = {

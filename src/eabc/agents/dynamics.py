@@ -38,7 +38,9 @@ import dataclasses
 import functools
 import json
 from collections.abc import Callable
+from typing import Annotated, Literal
 
+import annotated_types
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -47,46 +49,50 @@ import optax
 from eabc import networks, pytree
 from eabc.agents.common import Batch, apply_gradients
 from eabc.agents.contract import PretrainProgress
+from eabc.ranges import Count, LearningRate, NonNegativeCount, Settings, Weight, Widths
 
 Params = dict
 
 
+Activation = Literal["swish", "relu"]
+Decays = Annotated[tuple[Weight, ...], annotated_types.MinLen(1)]
+"""L2 weights, one or more finite numbers >= 0."""
+
+
 @dataclasses.dataclass(frozen=True)
-class DynamicsConfig:
+class DynamicsConfig(Settings):
     """The ensemble's settings; defaults are MOPO's (``mopo/models/constructor.py``, ``bnn.py``)."""
 
-    num_members: int = 7
+    num_members: Count = 7
     """Ensemble size (MOPO's num_networks)."""
-    num_elites: int = 5
+    num_elites: Count = 5
     """Members kept for rollouts (MOPO's num_elites)."""
-    hidden_dims: tuple[int, ...] = (200, 200, 200, 200)
+    hidden_dims: Widths = (200, 200, 200, 200)
     """Hidden widths (MOPO: four layers of 200)."""
-    activation: str = "swish"
+    activation: Activation = "swish"
     """Hidden activation, swish or relu (MOPO: swish)."""
-    weight_decays: tuple[float, ...] = (2.5e-5, 5e-5, 7.5e-5, 7.5e-5, 1e-4)
+    weight_decays: Decays = (2.5e-5, 5e-5, 7.5e-5, 7.5e-5, 1e-4)
     """L2 weight per layer, input to output (MOPO's FC weight_decay); shorter: the last repeats."""
-    lr: float = 1e-3
+    lr: LearningRate = 1e-3
     """Adam learning rate (MOPO)."""
-    batch_size: int = 256
+    batch_size: Count = 256
     """Mini-batch per member (MOPO's _train_model)."""
-    holdout_ratio: float = 0.2
+    holdout_ratio: Annotated[float, annotated_types.Interval(gt=0, lt=1)] = 0.2
     """Share of the data held out (MOPO's _train_model)."""
-    max_holdout: int = 5000
+    max_holdout: Count = 5000
     """At most this many held-out transitions (bnn.py's max_logging)."""
-    patience: int = 5
+    patience: NonNegativeCount = 5
     """Epochs without a 1% improvement of any member before stopping (max_epochs_since_update)."""
-    max_epochs: int | None = None
+    max_epochs: Count | None = None
     """Cap on epochs (MOPO: None, train until the patience runs out)."""
 
     def __post_init__(self):
-        if not 1 <= self.num_elites <= self.num_members:
+        super().__post_init__()
+        if self.num_elites > self.num_members:
             raise ValueError(
-                f"num_elites must lie in [1, num_members={self.num_members}], got {self.num_elites}"
+                f"num_elites must be at most num_members={self.num_members}, got "
+                f"{self.num_elites}: the elites are members of the ensemble"
             )
-        if self.activation not in ("swish", "relu"):
-            raise ValueError(f"activation must be swish or relu, got {self.activation!r}")
-        if not 0.0 < self.holdout_ratio < 1.0:
-            raise ValueError(f"holdout_ratio must lie in (0, 1), got {self.holdout_ratio}")
 
 
 INIT_MAX_LOGVAR, INIT_MIN_LOGVAR = 0.5, -10.0

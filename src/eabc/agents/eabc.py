@@ -24,11 +24,13 @@ variants the study screened (docs/results/screen/README.md), each a switch of th
 - ``independent_targets``: member ``i`` regresses on its own target ``r + gamma (1 - d) Q_targ_i``
   (MSG, Ghasemipour et al. 2022), so the members stay diverse off the data and the actor's
   ``mean - beta * std`` sees a real spread there;
-- ``bc_weight``: how the per-sample BC weight ``w`` is chosen. ``bernoulli`` is the paper's
-  ``w ~ Bernoulli(p)``; ``advantage`` keeps BC where the ensemble rates the data's action at least
-  as high as the policy's (:func:`advantage_keep`); the authors' earlier ``quantile`` rule and the
-  automatic p (``auto``) live in :mod:`eabc.agents.bc_weights`. None of them beat full cloning in
-  the screen (docs/results/screen/README.md).
+- ``bc_rule``: how the per-sample BC weight ``w`` is chosen, a config of its own
+  (:class:`eabc.agents.bc_weights.BCWeightConfig`, set by its settings' names: ``bc_weight``,
+  ``quantile_level``, ``auto_*``). ``bernoulli`` is the paper's ``w ~ Bernoulli(p)``;
+  ``advantage`` keeps BC where the ensemble rates the data's action at least as high as the
+  policy's (:func:`advantage_keep`); the authors' earlier ``quantile`` rule and the automatic p
+  (``auto``) live in :mod:`eabc.agents.bc_weights`. None of them beat full cloning in the screen
+  (docs/results/screen/README.md).
 
 Every variant is a setting of the one rule, so that comparing two variants compares that setting
 alone; the rule and its settings (with the docstrings the CLI and the contract tests read) live
@@ -48,19 +50,28 @@ from eabc.agents import bc_weights, td3_core
 from eabc.agents.common import Batch
 from eabc.agents.contract import Algorithm
 from eabc.data import tasks
+from eabc.ranges import (
+    Count,
+    Discount,
+    Ensemble,
+    Fraction,
+    LearningRate,
+    Probability,
+    Settings,
+    Weight,
+    Widths,
+)
 
 Pessimism = Literal["mean-std", "min", "min2"]
-BCWeight = Literal["bernoulli", "quantile", "auto", "advantage"]
-AutoSignal = Literal["spread", "distance"]
 
 
 @dataclasses.dataclass(frozen=True)
-class EABCConfig:
+class EABCConfig(Settings):
     """Settings of the EABC family; the defaults are the paper's (Tables 2 and 4)."""
 
-    num_critics: int = 10
+    num_critics: Ensemble = 10
     """K, the number of Q-networks in the critic ensemble."""
-    confidence_level: float | None = None
+    confidence_level: Probability | None = None
     """p, the probability that a sample's behaviour-cloning term is kept; None: Table 3's p for
     the dataset (bc_weight bernoulli)."""
     pessimism: Pessimism = "mean-std"
@@ -69,106 +80,36 @@ class EABCConfig:
     """Actor maximises pess(Q_1..K); False: it maximises critic 1 only (TD3, TD3+BC)."""
     behavior_cloning: bool = True
     """Keep the BC term and the lambda normalisation; False gives TD3's actor loss -mean Q."""
-    alpha: float = 2.5
+    alpha: Weight = 2.5
     """TD3+BC's alpha: lambda = alpha / mean|Q|."""
-    discount: float = 0.99
+    discount: Discount = 0.99
     """gamma."""
-    tau: float = 0.005
+    tau: Fraction = 0.005
     """Polyak rate of the target networks."""
-    policy_noise: float = 0.2
+    policy_noise: Weight = 0.2
     """Std of the target-policy smoothing noise, as a fraction of max_action."""
-    noise_clip: float = 0.5
+    noise_clip: Weight = 0.5
     """Clip of the smoothing noise, as a fraction of max_action."""
-    policy_freq: int = 2
+    policy_freq: Count = 2
     """The actor and the targets are updated every policy_freq critic steps."""
-    actor_lr: float = 3e-4
+    actor_lr: LearningRate = 3e-4
     """Adam learning rate of the actor."""
-    critic_lr: float = 3e-4
+    critic_lr: LearningRate = 3e-4
     """Adam learning rate of the critics."""
-    hidden_dims: tuple[int, ...] = (256, 256)
+    hidden_dims: Widths = (256, 256)
     """Hidden layer widths of actor and critics."""
     critic_layer_norm: bool = False
     """LayerNorm before each hidden ReLU of the critics (SEEM's order; ReBRAC's authors put it
     after). Not in the paper."""
-    pessimism_beta: float = 1.0
+    pessimism_beta: Weight = 1.0
     """beta of ``mean - beta * std`` (pessimism mean-std); the paper's is 1."""
     independent_targets: bool = False
     """Each member regresses on its own target network's value (MSG) instead of one shared
     pess(...) target; pessimism then acts through the actor's value only."""
-    bc_weight: BCWeight = "bernoulli"
-    """Per-sample BC weight: bernoulli (w ~ Bernoulli(p), the paper), quantile (the authors'
-    earlier ensemble rule, docs/algorithm.md#the-authors-earlier-bc-rule), auto (Bernoulli(p_t),
-    p_t adapted; see below) or advantage (w = 1 where pess Q(s, a) >= pess Q(s, pi(s)); no p)."""
-    quantile_level: float | None = None
-    """q of the quantile rule; None: the authors' q for the dataset (docs/algorithm.md)."""
-    auto_initial_p: float = 1.0
-    """auto: p at step 0 (start as TD3+BC, relax where the evidence allows)."""
-    auto_min_p: float = 0.0
-    """auto: the lowest p the controller may reach."""
-    auto_rate: float = 1e-3
-    """auto: how far p moves per actor step at a full-scale signal (|error| = 1)."""
-    auto_spread_ratio: float = 1.0
-    """auto: target of std_K Q(s, pi(s)) / std_K Q(s, a): p rises while the policy's actions are
-    more uncertain than the data's by more than this, and falls while they are less."""
-    auto_value_margin: float = 0.9
-    """auto: p jumps to 1 when the ensemble's mean value at the data's or the policy's actions
-    passes this fraction of max(0, max r) / (1 - gamma), the rewards seen so far allowing."""
-    auto_calibration_steps: int = 0
-    """auto: when > 0, p is held at auto_initial_p for this many gradient steps while the spread
-    ratio under that much behaviour cloning is averaged; the target is then auto_spread_ratio
-    times that average (the ratio as a relative signal: p falls only while the policy's actions
-    stay as sure, relative to the data's, as cloning keeps them). 0: the target is
-    auto_spread_ratio itself."""
-    auto_signal: AutoSignal = "spread"
-    """auto: what p follows. spread: the spread ratio above. distance: the policy's squared
-    distance from the data's actions, mean (pi(s) - a)^2 / max_action^2, against
-    auto_distance_ratio times its mean over the second half of the calibration (a trust region
-    relative to what cloning alone reaches on this data; needs auto_calibration_steps > 0)."""
-    auto_distance_ratio: float = 2.0
-    """auto, signal distance: how far, relative to full cloning's fit, the policy may move from
-    the data's actions before p rises."""
-
-    def __post_init__(self):
-        if self.num_critics < 2:
-            raise ValueError(f"num_critics must be at least 2, got {self.num_critics}")
-        if self.confidence_level is not None and not 0.0 <= self.confidence_level <= 1.0:
-            raise ValueError(f"confidence_level p must lie in [0, 1], got {self.confidence_level}")
-        if self.pessimism not in ("mean-std", "min", "min2"):
-            raise ValueError(f"pessimism must be mean-std, min or min2, got {self.pessimism!r}")
-        if self.policy_freq < 1:
-            raise ValueError(f"policy_freq must be at least 1, got {self.policy_freq}")
-        if self.bc_weight not in ("bernoulli", "quantile", "auto", "advantage"):
-            raise ValueError(
-                f"bc_weight must be bernoulli, quantile, auto or advantage, got {self.bc_weight!r}"
-            )
-        if self.pessimism_beta < 0:
-            raise ValueError(f"pessimism_beta must be >= 0, got {self.pessimism_beta}")
-        if self.quantile_level is not None and not 0.0 <= self.quantile_level <= 1.0:
-            raise ValueError(f"quantile_level q must lie in [0, 1], got {self.quantile_level}")
-        if not 0.0 <= self.auto_min_p <= self.auto_initial_p <= 1.0:
-            raise ValueError(
-                "auto p needs 0 <= auto_min_p <= auto_initial_p <= 1, got "
-                f"{self.auto_min_p} and {self.auto_initial_p}"
-            )
-        if self.auto_rate < 0 or self.auto_spread_ratio <= 0 or self.auto_value_margin <= 0:
-            raise ValueError("auto_rate must be >= 0, auto_spread_ratio and auto_value_margin > 0")
-        if self.auto_calibration_steps < 0:
-            raise ValueError(
-                f"auto_calibration_steps must be >= 0, got {self.auto_calibration_steps}"
-            )
-        if self.auto_signal not in ("spread", "distance"):
-            raise ValueError(f"auto_signal must be spread or distance, got {self.auto_signal!r}")
-        if self.auto_distance_ratio <= 0:
-            raise ValueError(f"auto_distance_ratio must be > 0, got {self.auto_distance_ratio}")
-        if (
-            self.bc_weight == "auto"
-            and self.auto_signal == "distance"
-            and self.auto_calibration_steps < 2
-        ):
-            raise ValueError(
-                "auto_signal distance measures full cloning's fit first: set "
-                "auto_calibration_steps (e.g. 5000)"
-            )
+    bc_rule: bc_weights.BCWeightConfig = bc_weights.BCWeightConfig()
+    """How the per-sample BC weight is chosen: the paper's w ~ Bernoulli(p) by default; the
+    screened rules (bc_weight quantile, auto, advantage) and their settings, each set by its own
+    name, in eabc.agents.bc_weights.BCWeightConfig."""
 
 
 PRESETS: dict[str, EABCConfig] = {
@@ -187,14 +128,17 @@ PRESETS: dict[str, EABCConfig] = {
     ),
     # The authors' earlier rule: BC switched per sample by the ensemble, q per dataset
     # (docs/algorithm.md#the-authors-earlier-bc-rule).
-    "eabc-quantile": EABCConfig(bc_weight="quantile"),
+    "eabc-quantile": EABCConfig(bc_rule=bc_weights.BCWeightConfig(bc_weight="quantile")),
     # EABC with p adapted during training from offline signals (no per-dataset p).
-    "eabc-auto": EABCConfig(bc_weight="auto"),
+    "eabc-auto": EABCConfig(bc_rule=bc_weights.BCWeightConfig(bc_weight="auto")),
     # A candidate for the recommended variant: automatic p on LayerNorm critics, its
     # spread-ratio target calibrated over the first 5,000 steps at p = 1 (a target of 1 let p
     # fall to 0.1 on hopper-medium and the score with it; see bc_weights.adapt_confidence_level).
     "eabc-robust": EABCConfig(
-        bc_weight="auto", critic_layer_norm=True, auto_calibration_steps=5000, auto_rate=1e-2
+        critic_layer_norm=True,
+        bc_rule=bc_weights.BCWeightConfig(
+            bc_weight="auto", auto_calibration_steps=5000, auto_rate=1e-2
+        ),
     ),
     # The recommended variant: full cloning (p = 1, no per-dataset p) on LayerNorm critics. In the
     # screen (seed 0, 50K steps; docs/results/screen/README.md) it was within a point of TD3+BC or
@@ -209,11 +153,10 @@ PRESETS: dict[str, EABCConfig] = {
     # holds the distance but lost hopper-medium (22; 35 at 1x) and walker2d-medium (14 at 1x):
     # not recommended.
     "eabc-trust": EABCConfig(
-        bc_weight="auto",
         critic_layer_norm=True,
-        auto_signal="distance",
-        auto_calibration_steps=5000,
-        auto_rate=1e-2,
+        bc_rule=bc_weights.BCWeightConfig(
+            bc_weight="auto", auto_signal="distance", auto_calibration_steps=5000, auto_rate=1e-2
+        ),
     ),
 }
 PUBLISHED = "eabc"
@@ -233,7 +176,8 @@ class EABCState(td3_core.TD3State):
 
 def init(key: jax.Array, obs_dim: int, act_dim: int, config: EABCConfig) -> EABCState:
     base = td3_core.init(key, obs_dim, act_dim, config)
-    controller = bc_weights.initial_controller(config) if config.bc_weight == "auto" else {}
+    auto = config.bc_rule.bc_weight == "auto"
+    controller = bc_weights.initial_controller(config) if auto else {}
     return EABCState(**vars(base), controller=controller)
 
 
@@ -287,7 +231,7 @@ def actor_loss(actor, critic, batch: Batch, key, config, max_action, keep=None, 
         loss = -value.mean()
         return loss, {"actor_loss": loss, "actor_value": value.mean()}
     lam = jax.lax.stop_gradient(config.alpha / jnp.abs(value).mean())
-    if keep is None and config.bc_weight == "advantage":
+    if keep is None and config.bc_rule.bc_weight == "advantage":
         keep = advantage_keep(critic, batch, value, pess_key, config)
     if keep is None:
         p = config.confidence_level if p is None else p
@@ -311,7 +255,7 @@ def actor_loss(actor, critic, batch: Batch, key, config, max_action, keep=None, 
         "bc_loss": bc,
         "bc_fraction": keep.mean(),
     }
-    if config.bc_weight == "auto" and config.auto_signal == "distance":
+    if config.bc_rule.bc_weight == "auto" and config.bc_rule.auto_signal == "distance":
         metrics["action_distance"] = jax.lax.stop_gradient(squared.mean()) / max_action**2
     return loss, metrics
 
@@ -351,17 +295,14 @@ def _step(state: EABCState, batch: Batch, key, config: EABCConfig, max_action, d
         return new, metrics
     # Lines 4-5: the actor's step on the critics just updated, then Polyak averaging. The
     # quantile rule reads the critics from before this step's update (the authors' order).
-    keep = (
-        bc_weights.quantile_keep(state.critic, batch, config)
-        if config.bc_weight == "quantile"
-        else None
-    )
-    p = state.controller["p"] if config.bc_weight == "auto" else None
+    rule = config.bc_rule.bc_weight
+    keep = bc_weights.quantile_keep(state.critic, batch, config) if rule == "quantile" else None
+    p = state.controller["p"] if rule == "auto" else None
     new, actor_metrics = td3_core.actor_step(
         new, config, actor_loss, batch, actor_key, config, max_action, keep, p
     )
     metrics = {**metrics, **actor_metrics}
-    if config.bc_weight == "auto":  # p moves after each actor step
+    if rule == "auto":  # p moves after each actor step
         controller, controller_metrics = bc_weights.adapt_confidence_level(
             state.controller, batch, metrics, config, new.step
         )
@@ -401,7 +342,8 @@ def resolve(config: EABCConfig, dataset_name: str, steps: int, given: frozenset[
     """Table 3's p (bc_weight bernoulli) and the authors' earlier q (bc_weight quantile) for the
     dataset, where they are unset."""
     task = tasks.parse_task(dataset_name)
-    if config.bc_weight == "quantile" and config.quantile_level is None:
+    rule = config.bc_rule
+    if rule.bc_weight == "quantile" and rule.quantile_level is None:
         q = QUANTILE_LEVEL.get(task)
         if q is None:
             raise ValueError(
@@ -409,8 +351,8 @@ def resolve(config: EABCConfig, dataset_name: str, steps: int, given: frozenset[
                 "table covers hopper/halfcheetah/walker2d x the five kinds); pass --set "
                 "quantile_level=Q"
             )
-        config = dataclasses.replace(config, quantile_level=q)
-    if config.bc_weight == "bernoulli" and config.confidence_level is None:
+        config = dataclasses.replace(config, bc_rule=dataclasses.replace(rule, quantile_level=q))
+    if rule.bc_weight == "bernoulli" and config.confidence_level is None:
         p = CONFIDENCE_LEVEL.get(task)
         if p is None:
             raise ValueError(

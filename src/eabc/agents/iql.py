@@ -22,8 +22,9 @@ of the dataset (:func:`preprocess`), as the authors do for the MuJoCo tasks.
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Annotated
 
+import annotated_types
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -32,6 +33,16 @@ import optax
 from eabc import networks, pytree
 from eabc.agents.common import Batch, apply_gradients
 from eabc.agents.contract import Algorithm
+from eabc.ranges import (
+    Count,
+    Discount,
+    Fraction,
+    LearningRate,
+    PositiveNumber,
+    Settings,
+    Weight,
+    Widths,
+)
 
 if TYPE_CHECKING:
     from eabc.data.dataset import Dataset
@@ -41,36 +52,30 @@ LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
 
 
 @dataclasses.dataclass(frozen=True)
-class IQLConfig:
+class IQLConfig(Settings):
     """IQL's settings; the defaults are the authors' for D4RL MuJoCo (configs/mujoco_config.py)."""
 
-    expectile: float = 0.7
+    expectile: Annotated[float, annotated_types.Interval(gt=0, lt=1)] = 0.7
     """tau, the expectile V regresses to (0.5: the mean; towards 1: the max over dataset actions)."""
-    temperature: float = 3.0
+    temperature: Weight = 3.0
     """beta, the inverse temperature of the advantage weights exp(beta * (Q - V))."""
-    max_weight: float = 100.0
+    max_weight: PositiveNumber = 100.0
     """Clip of the advantage weights (the authors' code)."""
-    discount: float = 0.99
+    discount: Discount = 0.99
     """gamma."""
-    tau: float = 0.005
+    tau: Fraction = 0.005
     """Polyak rate of the critic targets."""
-    actor_lr: float = 3e-4
+    actor_lr: LearningRate = 3e-4
     """Initial Adam learning rate of the actor (cosine decay to zero over total_steps)."""
-    critic_lr: float = 3e-4
+    critic_lr: LearningRate = 3e-4
     """Adam learning rate of the twin Q-networks."""
-    value_lr: float = 3e-4
+    value_lr: LearningRate = 3e-4
     """Adam learning rate of V."""
-    total_steps: int | None = None
+    total_steps: Count | None = None
     """Length of the actor's cosine decay: the run's steps, which the trainer fills in (None:
     constant learning rate)."""
-    hidden_dims: tuple[int, ...] = (256, 256)
+    hidden_dims: Widths = (256, 256)
     """Hidden layer widths of actor, critics and V."""
-
-    def __post_init__(self):
-        if not 0.0 < self.expectile < 1.0:
-            raise ValueError(f"expectile must lie in (0, 1), got {self.expectile}")
-        if self.total_steps is not None and self.total_steps < 1:
-            raise ValueError(f"total_steps must be positive, got {self.total_steps}")
 
 
 PRESETS: dict[str, IQLConfig] = {"iql": IQLConfig()}

@@ -26,8 +26,9 @@ from __future__ import annotations
 
 import dataclasses
 import sys
-from typing import Any, ClassVar
+from typing import Annotated, Any, ClassVar, Literal
 
+import annotated_types
 import jax
 import jax.numpy as jnp
 
@@ -36,70 +37,81 @@ from eabc.agents import dynamics, sac
 from eabc.agents.common import Batch, BuiltOn
 from eabc.agents.contract import Algorithm
 from eabc.data import tasks
+from eabc.ranges import (
+    Count,
+    Discount,
+    Finite,
+    Fraction,
+    LearningRate,
+    NonNegativeCount,
+    Settings,
+    Weight,
+    Widths,
+)
 
 """The actor outputs a tanh-Gaussian; its deterministic action is ``tanh(mean)``."""
 
 
 @dataclasses.dataclass(frozen=True)
-class MOPOConfig:
+class MOPOConfig(Settings):
     """MOPO's settings: the official configs (tianheyu927/mopo, ``examples/config/d4rl/``:
     ``base.py``, ``base_mopo.py`` and one file per task) and its model (``mopo/models``)."""
 
-    rollout_length: int = 5
+    rollout_length: Count = 5
     """h, model steps per rollout; per task from the official configs (:data:`TASK_SETTINGS`)."""
-    penalty_coeff: float = 1.0
+    penalty_coeff: Weight = 1.0
     """lambda of ``r - lambda u(s, a)``; per task from the official configs."""
-    real_ratio: float = 0.05
+    real_ratio: Annotated[float, annotated_types.Interval(ge=0, lt=1)] = 0.05
     """Share of real transitions in every SAC batch (base.py)."""
-    rollout_interval: int = 5
+    rollout_interval: Count = 5
     """Refill the model buffer every this many steps (see the module docstring)."""
-    buffer_capacity: int = 200_000
+    buffer_capacity: Count = 200_000
     """Transitions the model buffer keeps (the official keeps 5 epochs of rollouts, 1.25M at h = 5;
     200K keeps checkpoints near 20 MB)."""
-    termination: str = "auto"
+    termination: Literal["auto", "hopper", "walker2d", "none"] = "auto"
     """Termination rule of model rollouts: hopper, walker2d, none, or auto (from the dataset)."""
-    halt_threshold: float | None = None
+    halt_threshold: Weight | None = None
     """MOReL's: disagreement beyond which a rollout halts (None: never, MOPO)."""
-    halt_reward: float = 0.0
+    halt_reward: Finite = 0.0
     """MOReL's reward of the halting transition."""
-    model_members: int = 7
+    model_members: Count = 7
     """Dynamics ensemble size (base.py num_networks)."""
-    model_elites: int = 5
+    model_elites: Count = 5
     """Elites that roll out (base.py num_elites)."""
-    model_hidden_dims: tuple[int, ...] = (200, 200, 200, 200)
+    model_hidden_dims: Widths = (200, 200, 200, 200)
     """Dynamics MLP widths (constructor.py)."""
-    model_activation: str = "swish"
+    model_activation: dynamics.Activation = "swish"
     """Dynamics activation (constructor.py)."""
     model_sample: bool = True
     """Sample the elite's Gaussian (base.py deterministic=False); False: its mean."""
-    model_max_epochs: int | None = None
+    model_max_epochs: Count | None = None
     """Cap on model epochs (official: none, early stopping only)."""
-    model_patience: int = 5
+    model_patience: NonNegativeCount = 5
     """Model early-stopping patience in epochs (bnn.py max_epochs_since_update)."""
-    num_critics: int = 2
+    num_critics: Count = 2
     """SAC's Q-networks (softlearning)."""
-    discount: float = 0.99
+    discount: Discount = 0.99
     """gamma (base.py)."""
-    tau: float = 5e-3
+    tau: Fraction = 5e-3
     """Polyak rate (base.py)."""
-    actor_lr: float = 3e-4
+    actor_lr: LearningRate = 3e-4
     """SAC's Adam rates (softlearning's default)."""
-    critic_lr: float = 3e-4
+    critic_lr: LearningRate = 3e-4
     """SAC's critic Adam rate (softlearning)."""
-    alpha_lr: float = 3e-4
+    alpha_lr: LearningRate = 3e-4
     """SAC's temperature Adam rate (softlearning)."""
-    target_entropy: float | None = -3.0
+    target_entropy: Finite | None = -3.0
     """SAC's entropy target (base.py: -3 for every task); None: -act_dim."""
-    hidden_dims: tuple[int, ...] = (256, 256)
+    hidden_dims: Widths = (256, 256)
     """Actor and critic widths (softlearning's 256-256)."""
 
     def __post_init__(self):
-        if self.rollout_length < 1 or self.rollout_interval < 1:
-            raise ValueError("rollout_length and rollout_interval must be positive")
-        if not 0.0 <= self.real_ratio < 1.0:
-            raise ValueError(f"real_ratio must lie in [0, 1), got {self.real_ratio}")
-        if self.termination not in ("auto", "hopper", "walker2d", "none"):
-            raise ValueError(f"unknown termination rule {self.termination!r}")
+        super().__post_init__()
+        if self.model_elites > self.model_members:
+            raise ValueError(
+                f"model_elites must be at most model_members={self.model_members}, got "
+                f"{self.model_elites}: the elites are members of the ensemble"
+            )
 
     @property
     def model(self) -> dynamics.DynamicsConfig:

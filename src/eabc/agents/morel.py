@@ -26,6 +26,7 @@ from eabc.agents import dynamics, mopo
 from eabc.agents.common import Batch
 from eabc.agents.contract import Algorithm
 from eabc.agents.mopo import MOPOState, init, update  # noqa: F401  (the contract: init, update)
+from eabc.ranges import Count, Finite, Weight, Widths
 
 """The actor outputs a tanh-Gaussian; its deterministic action is ``tanh(mean)``."""
 
@@ -35,24 +36,24 @@ class MOReLConfig(mopo.MOPOConfig):
     """MOReL's settings: the official hopper-medium config where they apply; the SAC loop's from
     :class:`eabc.agents.mopo.MOPOConfig`."""
 
-    pessimism_coef: float = 3.0
+    pessimism_coef: Weight = 3.0
     """Threshold = this x the dataset's maximum disagreement (config pessimism_coef)."""
-    halt_reward: float = 0.0
+    halt_reward: Finite = 0.0
     """Reward of the halting step (config truncate_reward = 0 for D4RL hopper-medium; the paper
     writes -kappa, a negative constant)."""
-    penalty_coeff: float = 0.0
+    penalty_coeff: Weight = 0.0
     """No reward penalty: MOReL's pessimism is the halting alone."""
-    model_members: int = 4
+    model_members: Count = 4
     """Ensemble size (config num_models)."""
-    model_elites: int = 4
+    model_elites: Count = 4
     """Every member rolls out (the official picks one of the 4 models at random)."""
-    model_hidden_dims: tuple[int, ...] = (512, 512)
+    model_hidden_dims: Widths = (512, 512)
     """Dynamics widths (config hidden_size)."""
-    model_activation: str = "relu"
+    model_activation: dynamics.Activation = "relu"
     """Dynamics activation (config activation)."""
     model_sample: bool = False
     """The official models are deterministic: roll out a member's mean."""
-    model_max_epochs: int | None = 25
+    model_max_epochs: Count | None = 25
     """Dynamics epochs (config fit_epochs)."""
 
 

@@ -52,35 +52,36 @@ from eabc.agents import td3_core
 from eabc.agents.common import BatchWithNextActions
 from eabc.agents.contract import CRITIC_METRICS, Algorithm
 from eabc.data import tasks
+from eabc.ranges import Count, Discount, Ensemble, Fraction, LearningRate, Settings, Weight, Widths
 
 
 @dataclasses.dataclass(frozen=True)
-class ReBRACConfig:
+class ReBRACConfig(Settings):
     """ReBRAC's settings: Table 10's for Gym-MuJoCo, the betas from Table 11 per dataset."""
 
-    actor_bc_weight: float | None = None
+    actor_bc_weight: Weight | None = None
     """beta_1 of eq. (3), the weight of sum_dims (pi(s) - a)^2 in the actor's loss; None: Table
     11's for the dataset."""
-    critic_bc_weight: float | None = None
+    critic_bc_weight: Weight | None = None
     """beta_2 of eq. (4), the weight of sum_dims (a' - a'_data)^2 in the critics' target; None:
     Table 11's for the dataset."""
-    num_critics: int = 2
+    num_critics: Ensemble = 2
     """Critics; the target and the actor take their minimum."""
-    discount: float = 0.99
+    discount: Discount = 0.99
     """gamma."""
-    tau: float = 0.005
+    tau: Fraction = 0.005
     """Polyak rate of the target networks."""
-    policy_noise: float = 0.2
+    policy_noise: Weight = 0.2
     """Std of the target-policy smoothing noise, as a fraction of max_action."""
-    noise_clip: float = 0.5
+    noise_clip: Weight = 0.5
     """Clip of the smoothing noise, as a fraction of max_action."""
-    policy_freq: int = 2
+    policy_freq: Count = 2
     """The actor and the targets are updated every policy_freq critic steps."""
-    actor_lr: float = 1e-3
+    actor_lr: LearningRate = 1e-3
     """Adam learning rate of the actor (Table 10: 1e-3 with batch 1024 on Gym-MuJoCo)."""
-    critic_lr: float = 1e-3
+    critic_lr: LearningRate = 1e-3
     """Adam learning rate of the critics."""
-    hidden_dims: tuple[int, ...] = (256, 256, 256)
+    hidden_dims: Widths = (256, 256, 256)
     """Hidden layer widths of actor and critics (Table 10: 3 layers of 256)."""
     critic_layer_norm: bool = True
     """LayerNorm in every hidden layer of the critics (the paper's; the actor has none, as in
@@ -93,14 +94,6 @@ class ReBRACConfig:
     and +-3e-3 (critics); pytorch: PyTorch's default for every layer, as TD3+BC's."""
     normalize_q: bool = True
     """lambda = 1 / mean|Q| in the actor's loss (TD3+BC's normalisation); False: lambda = 1."""
-
-    def __post_init__(self):
-        if self.num_critics < 2:
-            raise ValueError(f"num_critics must be at least 2, got {self.num_critics}")
-        for name in ("actor_bc_weight", "critic_bc_weight"):
-            value = getattr(self, name)
-            if value is not None and value < 0:
-                raise ValueError(f"{name} must be >= 0, got {value}")
 
 
 PRESETS = {"rebrac": ReBRACConfig()}

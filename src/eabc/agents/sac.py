@@ -25,42 +25,55 @@ import optax
 from eabc import networks, pytree
 from eabc.agents.common import Batch, apply_gradients
 from eabc.agents.contract import Algorithm
+from eabc.ranges import (
+    Count,
+    Discount,
+    Finite,
+    Fraction,
+    LearningRate,
+    PositiveNumber,
+    Settings,
+    Weight,
+    Widths,
+)
 
 """The actor outputs a tanh-Gaussian; its deterministic action is ``tanh(mean)``."""
 
 
 @dataclasses.dataclass(frozen=True)
-class SACConfig:
+class SACConfig(Settings):
     """SAC's settings; the defaults are Haarnoja et al. (2018)'s for MuJoCo."""
 
-    num_critics: int = 2
+    num_critics: Count = 2
     """N, the number of Q-networks (2 for SAC; SAC-N and EDAC use more)."""
-    eta: float = 0.0
+    eta: Weight = 0.0
     """EDAC's weight of the ensemble-gradient diversity penalty (0: plain SAC / SAC-N)."""
-    discount: float = 0.99
+    discount: Discount = 0.99
     """gamma."""
-    tau: float = 0.005
+    tau: Fraction = 0.005
     """Polyak rate of the critic targets."""
-    actor_lr: float = 3e-4
+    actor_lr: LearningRate = 3e-4
     """Adam learning rate of the actor."""
-    critic_lr: float = 3e-4
+    critic_lr: LearningRate = 3e-4
     """Adam learning rate of the critics."""
-    alpha_lr: float = 3e-4
+    alpha_lr: LearningRate = 3e-4
     """Adam learning rate of log(alpha)."""
-    init_alpha: float = 1.0
+    init_alpha: PositiveNumber = 1.0
     """Initial entropy temperature."""
     autotune: bool = True
     """Tune the temperature toward ``target_entropy`` (False: keep ``init_alpha`` throughout)."""
-    target_entropy: float | None = None
+    target_entropy: Finite | None = None
     """Entropy the temperature aims for (default -act_dim)."""
-    hidden_dims: tuple[int, ...] = (256, 256)
+    hidden_dims: Widths = (256, 256)
     """Hidden layer widths of actor and critics."""
 
     def __post_init__(self):
-        if self.num_critics < 1:
-            raise ValueError(f"num_critics must be at least 1, got {self.num_critics}")
+        super().__post_init__()
         if self.eta > 0 and self.num_critics < 2:
-            raise ValueError("EDAC's diversity penalty (eta > 0) needs num_critics >= 2")
+            raise ValueError(
+                f"eta={self.eta} (EDAC's diversity penalty) needs num_critics >= 2, got "
+                f"{self.num_critics}; set num_critics 2 or more, or eta 0"
+            )
 
 
 PRESETS: dict[str, SACConfig] = {

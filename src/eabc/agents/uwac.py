@@ -25,8 +25,9 @@ code (apple/ml-uwac, ``rlkit/torch/sac/uwac_dropout.py`` and ``examples/UWAC_hdf
 from __future__ import annotations
 
 import dataclasses
-from typing import ClassVar
+from typing import Annotated, ClassVar, Literal
 
+import annotated_types
 import jax
 import jax.numpy as jnp
 
@@ -35,6 +36,15 @@ from eabc.agents import bear
 from eabc.agents.bear import BEARState
 from eabc.agents.common import Batch, BuiltOn
 from eabc.agents.contract import Algorithm
+from eabc.ranges import (
+    Count,
+    Finite,
+    LearningRate,
+    NonNegativeCount,
+    PositiveNumber,
+    Weight,
+    Widths,
+)
 
 """The actor outputs a tanh-Gaussian; its deterministic action is ``tanh(mean)``."""
 
@@ -44,18 +54,18 @@ class UWACConfig(bear.BEARConfig):
     """UWAC's settings: the defaults of the authors' ``examples/UWAC_hdf5_d4rl.py`` (its argument
     defaults and trainer arguments) and ``UWAC_DropoutTrainer``, which build on rlkit's BEAR."""
 
-    dropout_rate: float = 0.1
+    dropout_rate: Annotated[float, annotated_types.Interval(ge=0, lt=1)] = 0.1
     """p, dropout after every hidden layer of the critics (``--drop_rate``)."""
-    num_dropout_samples: int = 100
+    num_dropout_samples: Annotated[int, annotated_types.Interval(ge=2, le=2**31 - 1)] = 100
     """T, dropout passes for the mean and variance of a Q estimate (``multiple(num_samples=100)``)."""
-    dropout_masks: str = "per-pass"
+    dropout_masks: Literal["per-pass", "per-row"] = "per-pass"
     """``per-pass``: T sampled networks, each pass's masks shared by the batch's rows;
     ``per-row``: every row of every pass its own masks (the authors' code; 5x slower on a CPU)."""
-    beta: float = 0.5
+    beta: Weight = 0.5
     """beta of the weight ``exp(-beta Var)`` (``--beta``)."""
-    clip_bottom: float = 0.0
+    clip_bottom: Weight = 0.0
     """Lower clip of the weight (``--clip_bottom``)."""
-    clip_top: float = 1.0
+    clip_top: Weight = 1.0
     """Upper clip of the weight (``--clip_top``)."""
     exponential_weight: bool = True
     """Weight ``exp(-beta Var)`` (``--use_exp_weight``); False: the paper's ``beta / Var``."""
@@ -64,45 +74,32 @@ class UWACConfig(bear.BEARConfig):
     spectral_norm: bool = True
     """Spectral normalisation of every critic layer (``--SN``)."""
     # rlkit-BEAR settings of the UWAC script, where they differ from BEAR's own code:
-    kernel: str = "gaussian"
+    kernel: bear.Kernel = "gaussian"
     """MMD kernel (``--kernel_type``)."""
-    mmd_sigma: float = 20.0
+    mmd_sigma: PositiveNumber = 20.0
     """Kernel bandwidth (``--mmd_sigma``)."""
-    num_samples_match: int = 4
+    num_samples_match: Count = 4
     """Actor and VAE samples per state for the MMD (``num_samples_mmd_match=4``)."""
-    mmd_threshold: float = 0.07
+    mmd_threshold: Weight = 0.07
     """epsilon (``--target_mmd_thresh``)."""
-    init_log_lagrange: float | None = 0.0
+    init_log_lagrange: Finite | None = 0.0
     """Initial log(alpha) (rlkit: ``ptu.zeros(1)``)."""
-    warmup_steps: int = 40_000
+    warmup_steps: NonNegativeCount = 40_000
     """Steps of MMD-only actor training (``_n_train_steps_total >= 40000``)."""
     target_actor: bool = False
     """a' from the current policy (rlkit)."""
     actor_q_all_samples: bool = False
     """The actor's Q at its first sample (rlkit)."""
-    actor_noise_clip: float | None = None
+    actor_noise_clip: Weight | None = None
     """Unclipped actor noise (rlkit's TanhGaussianPolicy)."""
-    actor_lr: float = 1e-4
+    actor_lr: LearningRate = 1e-4
     """``--policy_lr``."""
-    critic_lr: float = 3e-4
+    critic_lr: LearningRate = 3e-4
     """``--qf_lr``."""
-    vae_lr: float = 3e-4
+    vae_lr: LearningRate = 3e-4
     """The trainer's VAE optimiser."""
-    hidden_dims: tuple[int, ...] = (256, 256)
+    hidden_dims: Widths = (256, 256)
     """``layer_size=256``, two hidden layers."""
-
-    def __post_init__(self):
-        super().__post_init__()
-        if not 0.0 <= self.dropout_rate < 1.0:
-            raise ValueError(f"dropout_rate must lie in [0, 1), got {self.dropout_rate}")
-        if self.dropout_masks not in ("per-pass", "per-row"):
-            raise ValueError(
-                f"dropout_masks must be 'per-pass' or 'per-row', got {self.dropout_masks!r}"
-            )
-        if self.num_dropout_samples < 2:
-            raise ValueError(
-                f"num_dropout_samples must be at least 2 (a variance), got {self.num_dropout_samples}"
-            )
 
 
 PRESETS: dict[str, UWACConfig] = {"uwac": UWACConfig()}

@@ -21,17 +21,18 @@ from eabc import networks, pytree
 from eabc.agents import eabc, td3_core
 from eabc.agents.common import Batch, BuiltOn, apply_gradients
 from eabc.agents.contract import Algorithm
+from eabc.ranges import Ensemble, LearningRate, Probability
 
 
 @dataclasses.dataclass(frozen=True)
 class WPCConfig(eabc.EABCConfig):
     """TD3+BC's settings (Fujimoto & Gu 2021) plus the value network's learning rate."""
 
-    num_critics: int = 2
-    confidence_level: float = 1.0
+    num_critics: Ensemble = 2
+    confidence_level: Probability = 1.0
     pessimism: eabc.Pessimism = "min"
     actor_uses_ensemble: bool = False
-    value_lr: float = 3e-4
+    value_lr: LearningRate = 3e-4
     """Adam learning rate of V(s) (the critics' rate, as TD3+BC uses for every network)."""
 
 

@@ -164,7 +164,7 @@ def check_agent(config, agent, items: tuple[str, ...]) -> None:
     """`eabc train`'s algorithm settings (its typed flags ``agent`` and ``--set`` ``items``)
     checked against ``config.algo``'s own, before any work; ``ValueError`` naming the flag
     (``--num-critics``) or ``--set``."""
-    from eabc.agents import get_algorithm, validation  # noqa: PLC0415
+    from eabc.agents import get_algorithm  # noqa: PLC0415
 
     algorithm = get_algorithm(config.algo)
     flags = {k: v for k, v in dataclasses.asdict(agent).items() if v is not None}
@@ -183,8 +183,8 @@ def check_agent(config, agent, items: tuple[str, ...]) -> None:
                 f"{named}{algorithm.name} has no setting(s) {unknown}; it has "
                 f"{sorted(algorithm.settings())}"
             )
-    try:
-        validation.validate(algorithm.preset, algorithm.name, flags | settings)
+    try:  # converted and checked by the config's own declaration, as a spec's are
+        ranges.validated(algorithm.preset, flags | settings, f"{algorithm.name} setting ")
     except ValueError as error:
         message = str(error)
         for name in flags:

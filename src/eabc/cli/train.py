@@ -11,6 +11,7 @@ from typing import Annotated
 
 import tyro
 
+from eabc import ranges
 from eabc.cli.options import (
     AgentOverrides,
     Interrupted,
@@ -243,7 +244,7 @@ def train_plan(cmd: Train) -> dict[str, str]:
         seconds = estimate_seconds(spec, steps_done, speed=speed)
     algorithm = get_algorithm(config.algo)  # its update alone, as eabc report measures it
     per_million = trainer.estimate_seconds(algorithm, agent_config, 1_000_000, 0, speed=speed)
-    settings = dataclasses.asdict(agent_config)
+    settings = ranges.flat(agent_config)
     return {
         "run": what,
         "dataset": data,

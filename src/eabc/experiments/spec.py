@@ -27,14 +27,13 @@ import dataclasses
 import hashlib
 import itertools
 import os
-import typing
 from pathlib import Path
 from typing import Any
 
 import pydantic
 
 from eabc import paths, ranges
-from eabc.agents import get_algorithm, validation
+from eabc.agents import get_algorithm
 from eabc.training.config import TrainConfig
 
 TRAIN_FIELDS = {f.name for f in dataclasses.fields(TrainConfig)} - {"dataset", "algo", "seed"}
@@ -243,13 +242,13 @@ class SweepSpec(pydantic.BaseModel):
         if not value:
             raise ValueError("seeds is empty: list at least one seed, e.g. seeds: [0]")
         for i, seed in enumerate(value):
-            ranges.check(seed, ranges.Seed, f"seeds[{i}]")
+            ranges.check(seed, _TRAIN_TYPES["seed"], f"seeds[{i}]")  # TrainConfig's range
         return list(value)
 
     @pydantic.field_validator("steps", mode="before")
     @classmethod
     def _steps(cls, value):
-        return ranges.check(value, ranges.Steps, "steps")
+        return ranges.check(value, _TRAIN_TYPES["steps"], "steps")
 
     @pydantic.field_validator("grid", mode="before")
     @classmethod
@@ -286,19 +285,13 @@ class SweepSpec(pydantic.BaseModel):
             raise ValueError(
                 f"unknown train setting(s) {sorted(map(str, bad))}; use {sorted(TRAIN_FIELDS)}"
             )
-        for key, setting in value.items():
-            try:
-                pydantic.TypeAdapter(_TRAIN_TYPES[key]).validate_python(setting, strict=True)
-            except pydantic.ValidationError as error:
-                raise ValueError(
-                    f"bad train setting {key}: {error.errors()[0]['msg'].lower()}, got {setting!r}"
-                ) from None
-        return dict(value)
+        return dict(value)  # each of its type and range: TrainConfig's own check (below)
 
     @pydantic.model_validator(mode="after")
     def _train_config(self):
-        """The train settings together (intervals that divide, a cache_dir that can be one),
-        as TrainConfig checks them."""
+        """The train settings as TrainConfig checks them: each of its declared type and range
+        (no conversion: 1000, not "1000"), and together (intervals that divide, a cache_dir that
+        can be one)."""
         settings = self.train_settings()
         try:
             if settings.get("cache_dir"):
@@ -313,7 +306,7 @@ class SweepSpec(pydantic.BaseModel):
         return self.train | ({"steps": self.steps} if self.steps is not None else {})
 
 
-_TRAIN_TYPES = typing.get_type_hints(TrainConfig)
+_TRAIN_TYPES = ranges.hints(TrainConfig)
 
 
 def check_spec(spec: dict[str, Any]) -> SweepSpec:
@@ -344,15 +337,14 @@ def expand(spec: dict[str, Any]) -> list[RunSpec]:
     algos = checked.algos
     for dataset in datasets:
         for algo in algos:
-            fields = {f.name for f in dataclasses.fields(get_algorithm(algo).preset)}
-            axes = {k: v for k, v in grid.items() if k in fields}
+            axes = {k: v for k, v in grid.items() if k in _fields(algo)}
             for key, values in axes.items():
                 _one_way_each(algo, key, values)
             for values in itertools.product(*axes.values()):
                 overrides = _frozen(dict(zip(axes, values)))
                 try:
-                    validation.validate(get_algorithm(algo).preset, algo, dict(overrides))
-                except validation.SettingError as error:
+                    _settings(algo, dict(overrides))
+                except ranges.SettingError as error:
                     raise ValueError(f"grid: {error}") from None
                 for seed in seeds:
                     runs.append(RunSpec(dataset, algo, seed, overrides, _frozen(train)))
@@ -374,12 +366,11 @@ def _one_way_each(algo: str, key: str, values: list) -> None:
     """Refuse a grid axis that lists one value written two ways (``[1, 1.0]``, ``[5, "5"]``):
     the algorithm reads them as one setting, so the sweep would train the same run twice under
     two labels. (A value listed twice as the same text is one run, as a seed listed twice is.)"""
-    preset = get_algorithm(algo).preset
     seen: dict[Any, Any] = {}
     for value in values:
         try:
-            read = getattr(validation.validate(preset, algo, {key: _freeze(value)}), key)
-        except validation.SettingError as error:
+            read = ranges.value_of(_settings(algo, {key: _freeze(value)}), key)
+        except ranges.SettingError as error:
             raise ValueError(f"grid: {error}") from None
         first = seen.setdefault(repr(read), value)
         if _text(_freeze(first)) != _text(_freeze(value)):
@@ -431,13 +422,20 @@ def _variant(
             f"variant {entry!r}: {entry['algo']} has no setting(s) {sorted(unknown)}; it has "
             f"{sorted(_fields(entry['algo']))}"
         )
-    validation.validate(get_algorithm(entry["algo"]).preset, entry["algo"], settings)  # values
+    _settings(entry["algo"], settings)  # each value of its declared type and range
     only = entry.get("datasets", datasets)
     return entry["algo"], _frozen(settings), [_dataset(d) for d in only]
 
 
 def _fields(algo: str) -> set[str]:
-    return {f.name for f in dataclasses.fields(get_algorithm(algo).preset)}
+    return get_algorithm(algo).settings()
+
+
+def _settings(algo: str, values: dict[str, Any]) -> Any:
+    """``algo``'s preset with ``values`` (from YAML), converted and checked by its config's own
+    declaration (:func:`eabc.ranges.validated`), as the command line and the Python API check
+    them."""
+    return ranges.validated(get_algorithm(algo).preset, values, f"{algo} setting ")
 
 
 def groups(runs: list[RunSpec]) -> list[list[RunSpec]]:

@@ -7,14 +7,13 @@ one, an evaluation environment that cannot have made the data, a run that does n
 from __future__ import annotations
 
 import dataclasses
-import typing
 from pathlib import Path
 from typing import Any, Literal
 
 import jax
 
 from eabc import agents, paths, ranges
-from eabc.agents import ALGORITHMS, get_algorithm, validation
+from eabc.agents import ALGORITHMS, get_algorithm
 from eabc.data import generate, tasks
 from eabc.data.dataset import Dataset, DatasetError
 from eabc.evaluation import check_spaces, make_env
@@ -25,8 +24,9 @@ FINAL_EVALUATIONS = 10
 
 
 @dataclasses.dataclass(frozen=True)
-class TrainConfig:
-    """How to train: data, length, evaluation and bookkeeping (the paper's protocol by default)."""
+class TrainConfig(ranges.Settings):
+    """How to train: data, length, evaluation and bookkeeping (the paper's protocol by default).
+    Each field's type says its range (:mod:`eabc.ranges`), checked when the config is made."""
 
     dataset: str = "hopper-random"
     """A built-in name (hopper-random, ...), a .hdf5/.npz path, or minari:ID."""
@@ -61,21 +61,13 @@ class TrainConfig:
     """Where built-in datasets are made (default $EABC_CACHE_DIR or ~/.cache/eabc)."""
 
     def __post_init__(self):
+        super().__post_init__()  # each setting of its declared type and range
         if self.algo not in ALGORITHMS:
             raise ValueError(
                 f"algo: unknown algorithm {self.algo!r}; choose one of {', '.join(ALGORITHMS)}"
             )
         if self.batch_size is None:  # set here, so config.json records the size trained with
             object.__setattr__(self, "batch_size", get_algorithm(self.algo).batch_size)
-        schedules = typing.get_args(typing.get_type_hints(TrainConfig)["eval_schedule"])
-        if self.eval_schedule not in schedules:
-            raise ValueError(
-                f"eval_schedule must be one of {', '.join(schedules)}, got {self.eval_schedule!r}"
-            )
-        hints = typing.get_type_hints(TrainConfig, include_extras=True)
-        for field in dataclasses.fields(self):  # each number within its declared range
-            if ranges.constrained(hints[field.name]):
-                ranges.check(getattr(self, field.name), hints[field.name], field.name)
         for name in ("eval_interval", "checkpoint_interval"):
             value = getattr(self, name)
             if value % self.log_interval:
@@ -201,5 +193,5 @@ def resolve_agent_config(
     unknown = set(overrides) - fields
     if unknown:
         raise ValueError(f"{algo} has no setting(s) {sorted(unknown)}; it has {sorted(fields)}")
-    config = validation.validate(algorithm.preset, algo, overrides)
+    config = ranges.validated(algorithm.preset, overrides, f"{algo} setting ")
     return algorithm.resolved(config, dataset_name, steps, set(overrides))

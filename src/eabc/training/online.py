@@ -22,7 +22,6 @@ import functools
 import json
 import os
 import time
-import typing
 from pathlib import Path
 from typing import Any
 
@@ -45,7 +44,7 @@ SNAPSHOTS = "snapshots"
 
 
 @dataclasses.dataclass(frozen=True)
-class SACTrainConfig:
+class SACTrainConfig(ranges.Settings):
     """Online SAC's schedule (Haarnoja et al. 2018 for MuJoCo; Spinning Up's update cadence)."""
 
     env: str = "hopper"
@@ -76,10 +75,7 @@ class SACTrainConfig:
     gradient steps on the first ``update_after`` new transitions alone undo a trained policy."""
 
     def __post_init__(self):
-        hints = typing.get_type_hints(SACTrainConfig, include_extras=True)
-        for field in dataclasses.fields(self):  # each number within its declared range
-            if ranges.constrained(hints[field.name]):
-                ranges.check(getattr(self, field.name), hints[field.name], field.name)
+        super().__post_init__()  # each setting of its declared type and range
         for name in ("eval_interval", "snapshot_interval", "checkpoint_interval"):
             if getattr(self, name) % self.update_every:
                 raise ValueError(f"{name} must be a multiple of update_every={self.update_every}")

@@ -1,12 +1,14 @@
 """A training run's ``config.json``, checked by one model wherever it is read.
 
 Resume, evaluate, ``load_policy``, the ONNX export and ``eabc results`` read a run's config.json
-through :func:`read`, which checks it against :class:`RunConfigFile` before anything uses it: each
-key of its type and range, no key this package never writes, the train settings together as
-:class:`~eabc.training.config.TrainConfig` checks them and the agent settings as the algorithm's own
-(:mod:`eabc.agents.validation`). A hand-edited file (``{}``, a key missing or added, a string
-where a number belongs, a list where a mapping belongs) is refused in one line that names the file,
-the key and what to do (:class:`ConfigError`), rather than raising ``KeyError`` deep in a reader.
+through :func:`read`, which checks it against :class:`RunConfigFile` before anything uses it: no
+key this package never writes, each train setting of the type and range
+:class:`~eabc.training.config.TrainConfig` declares for it (and the settings together, as
+TrainConfig checks them), and the agent settings as the algorithm's config declares them
+(:func:`eabc.ranges.validated`), in the words the command line and a sweep spec use. A
+hand-edited file (``{}``, a key missing or added, a string where a number belongs, a list where a
+mapping belongs) is refused in one line that names the file, the key and what to do
+(:class:`ConfigError`), rather than raising ``KeyError`` deep in a reader.
 
 Files of earlier versions keep loading: every version wrote ``train`` with all of TrainConfig's
 fields, ``agent``, ``dataset`` and ``max_action`` (the first three are required: without them the
@@ -24,14 +26,13 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-import typing
 from pathlib import Path
 from typing import Annotated, Any
 
 import pydantic
 
 from eabc import ranges
-from eabc.agents import ALGORITHMS, validation
+from eabc.agents import ALGORITHMS
 from eabc.data.dataset import reference_scores_problem
 from eabc.training.checkpoint import CONFIG, read_config
 from eabc.training.config import TrainConfig
@@ -87,7 +88,7 @@ class RunConfigFile(_Strict):
     train: dict[str, Any]
     """TrainConfig's fields (:func:`train_model` checks them)."""
     agent: dict[str, Any]
-    """The algorithm's resolved settings (checked by the algorithm's own validation)."""
+    """The algorithm's resolved settings (checked by its config's declaration)."""
     dataset: DatasetSection
     """What the run was trained on."""
     max_action: Annotated[float, pydantic.Field(gt=0, allow_inf_nan=False)] | None = None
@@ -110,28 +111,13 @@ def check_max_action(config: dict, path: Path, env) -> None:
 
 @functools.cache
 def train_model() -> type[pydantic.BaseModel]:
-    """TrainConfig's fields as a strict model: :data:`REQUIRED` required, the others with
-    TrainConfig's defaults; each number in the range TrainConfig declares for it (steps and
-    intervals in [1, 2**31 - 1], the seed in its range), the algorithm one this package has."""
-    hints = typing.get_type_hints(TrainConfig, include_extras=True)  # the declared ranges
-    fields: dict[str, Any] = {}
-    for field in dataclasses.fields(TrainConfig):
-        default = ... if field.name in REQUIRED else field.default
-        fields[field.name] = (hints[field.name], default)
-
-    def known(value: str) -> str:
-        if value not in ALGORITHMS:
-            raise ValueError(
-                f"{value!r} is not an algorithm of eabc; it has {', '.join(ALGORITHMS)}"
-            )
-        return value
-
-    return pydantic.create_model(
-        "TrainSection",
-        __base__=_Strict,
-        __validators__={"_algo": pydantic.field_validator("algo")(known)},
-        **fields,
-    )
+    """TrainConfig's keys as a strict model: :data:`REQUIRED` required, no other key; the values
+    are TrainConfig's to check (:func:`check`), by the types it declares."""
+    fields: dict[str, Any] = {
+        field.name: (Any, ... if field.name in REQUIRED else field.default)
+        for field in dataclasses.fields(TrainConfig)
+    }
+    return pydantic.create_model("TrainSection", __base__=_Strict, **fields)
 
 
 def check(config: dict, path: Path) -> dict:
@@ -147,20 +133,19 @@ def check(config: dict, path: Path) -> dict:
         first = error.errors()[0]
         raise ConfigError(_message({**first, "loc": ("train", *first["loc"])}, path)) from None
     train = config["train"]
-    try:  # the settings together (intervals that divide), as training checks them
+    try:  # each of its declared type and range (no conversion), and together, as TrainConfig's
         TrainConfig(**{**train, "cache_dir": None})
     except ValueError as error:
-        raise ConfigError(f"{path}: train: {error}; fix it by hand {_REDO}") from None
+        raise ConfigError(
+            f"{path}: train.{error}; put back the value the run was started with {_REDO}"
+        ) from None
     algorithm = ALGORITHMS[train["algo"]]
-    known = {f.name for f in dataclasses.fields(algorithm.preset)}
-    settings = {
-        k: tuple(v) if isinstance(v, list) else v for k, v in config.get("agent", {}).items()
-    }
+    preset = algorithm.preset
+    known = algorithm.settings() | set(ranges.groups(type(preset)))
+    settings = {k: v for k, v in config.get("agent", {}).items() if k in known}
     try:  # settings of older versions that this one dropped are ignored, as resume does
-        validation.validate(
-            algorithm.preset, algorithm.name, {k: v for k, v in settings.items() if k in known}
-        )
-    except validation.SettingError as error:
+        ranges.validated(preset, settings, f"{algorithm.name} setting ")
+    except ranges.SettingError as error:
         raise ConfigError(
             f"{path}: agent: {error}; put back the value the run was started with {_REDO}"
         ) from None
