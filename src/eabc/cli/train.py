@@ -210,7 +210,7 @@ def train_plan(cmd: Train) -> dict[str, str]:
             )
         what = f"a new run in {run_dir}"
         path = generate.dataset_path(config.dataset, config.cache_dir)
-        if config.dataset in generate.builtin_names() and not generate.is_current(
+        if sources.kind(config.dataset) == "builtin" and not generate.is_current(
             path, config.dataset
         ):
             check_evaluation_env(config)  # --env against the task's shapes, as training will

@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from eabc import compile_cache, paths
-from eabc.data import generate
+from eabc.data import generate, sources
 from eabc.data.sources import load_dataset
 from eabc.experiments.run_status import RUNS, SPEC, status_with_reason
 from eabc.experiments.spec import RunSpec, is_path
@@ -30,7 +30,7 @@ def prepare_datasets(runs: list[RunSpec], log=lambda line: print(line, flush=Tru
         config = run.train_config()
         path = generate.dataset_path(config.dataset, config.cache_dir)
         if (
-            config.dataset in generate.builtin_names()
+            sources.kind(config.dataset) == "builtin"
             and path not in seen
             and not generate.is_current(path, config.dataset)
         ):

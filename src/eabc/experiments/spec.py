@@ -34,6 +34,7 @@ import pydantic
 
 from eabc import paths, ranges
 from eabc.agents import get_algorithm
+from eabc.data import sources, tasks
 from eabc.training.config import TrainConfig
 
 TRAIN_FIELDS = {f.name for f in dataclasses.fields(TrainConfig)} - {"dataset", "algo", "seed"}
@@ -95,11 +96,9 @@ class RunSpec:
 
 
 def is_path(dataset: str) -> bool:
-    """Whether a --dataset value names a file (rather than a built-in name or a Minari id)."""
-    if dataset.startswith("minari:"):
-        return False
-    path = paths.expand(dataset)
-    return path.suffix in (".hdf5", ".h5", ".npz") or path.exists()
+    """Whether a --dataset value names a file (rather than a built-in name or a Minari id):
+    :func:`eabc.data.sources.kind` decides."""
+    return sources.kind(dataset) == "file"
 
 
 def differences(stored: RunSpec, run: RunSpec) -> list[str]:
@@ -465,7 +464,5 @@ def shape_family(dataset: str) -> str:
     """A name that datasets whose observations and actions have one shape share: a built-in
     dataset's environment (``hopper`` for hopper-medium and hopper-random, ``antmaze`` for every
     maze); any other dataset's own name."""
-    from eabc.data import generate, tasks  # noqa: PLC0415
-
-    task = tasks.parse_task(dataset) if dataset in generate.builtin_names() else None
+    task = tasks.parse_task(dataset) if sources.kind(dataset) == "builtin" else None
     return task[0] if task is not None else f"dataset {dataset}"

@@ -26,7 +26,7 @@ from typing import Any
 import pandas as pd
 
 from eabc import paths
-from eabc.data import generate
+from eabc.data import generate, sources
 from eabc.experiments import job_process, planning, results, run_status
 from eabc.experiments.spec import RunSpec, job_name
 from eabc.training import eval_pool
@@ -109,7 +109,7 @@ def start_datasets(
     for run in (run for job in job_list for run in job):
         config = run.train_config()
         name = config.dataset
-        if name in futures or name not in generate.builtin_names():
+        if name in futures or sources.kind(name) != "builtin":
             continue
         path = generate.dataset_path(name, config.cache_dir)
         if generate.is_current(path, name):

@@ -14,7 +14,7 @@ import jax
 
 from eabc import agents, paths, ranges
 from eabc.agents import ALGORITHMS, get_algorithm
-from eabc.data import generate, tasks
+from eabc.data import sources, tasks
 from eabc.data.dataset import Dataset, DatasetError
 from eabc.evaluation import check_spaces, make_env
 from eabc.training import rewards
@@ -169,7 +169,7 @@ def check_evaluation_env(config: TrainConfig, dataset: Dataset | None = None) ->
             check_spaces(make_env(env_id), dataset)
         return
     info = tasks.env_info(tasks.parse_task(config.dataset))
-    if not config.env or info is None or config.dataset not in generate.builtin_names():
+    if not config.env or info is None or sources.kind(config.dataset) != "builtin":
         return
     env, own = make_env(config.env), make_env(info.env_id)
     for space in ("observation", "action"):

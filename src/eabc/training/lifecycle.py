@@ -22,6 +22,7 @@ import numpy as np
 
 from eabc import paths, ranges
 from eabc.agents import Algorithm, get_algorithm
+from eabc.data import sources
 from eabc.data.dataset import Dataset, DatasetError, Normalizer, reference_scores_problem
 from eabc.data.sources import load_dataset
 from eabc.evaluation import Evaluator, check_spaces
@@ -167,12 +168,9 @@ def _pretrain(run: Run) -> None:
 def _absolute_paths(config: TrainConfig) -> TrainConfig:
     """Dataset files and the cache directory as absolute paths, so that config.json works from
     any directory (``eabc evaluate``, ``--resume`` and sweeps elsewhere)."""
-    path = paths.expand(config.dataset)
-    if not config.dataset.startswith("minari:") and (
-        path.suffix in (".hdf5", ".h5", ".npz") or path.exists()
-    ):
+    if sources.kind(config.dataset) == "file":
         # Absolute, not resolved: a link stays the path the user gave (and errors name it).
-        config = dataclasses.replace(config, dataset=os.path.abspath(path))
+        config = dataclasses.replace(config, dataset=os.path.abspath(paths.expand(config.dataset)))
     if config.cache_dir is not None:
         config = dataclasses.replace(config, cache_dir=str(Path(config.cache_dir).resolve()))
     return config
