@@ -24,13 +24,13 @@ PENDULUM_CONTROLLER_RETURN = -130.0
 # (`pip install -e ".[d3rlpy,minari,test]"`, made by .ci/run), not in `dev`: its interop tests are collected
 # where d3rlpy is installed, and the header says so where it is not.
 HAVE_D3RLPY = importlib.util.find_spec("d3rlpy") is not None
-collect_ignore = [] if HAVE_D3RLPY else ["test_d3rlpy.py"]
+collect_ignore = [] if HAVE_D3RLPY else ["data/test_d3rlpy.py"]
 
 
 def pytest_terminal_summary(terminalreporter):
     if not HAVE_D3RLPY:
         terminalreporter.write_line(
-            "d3rlpy interop (tests/test_d3rlpy.py) not collected: d3rlpy is not installed here; "
+            "d3rlpy interop (tests/data/test_d3rlpy.py) not collected: d3rlpy is not installed here; "
             "it runs in an environment of its own (pip install -e '.[d3rlpy,minari,test]')"
         )
 
@@ -102,7 +102,7 @@ def quick_chunks(monkeypatch):
 @pytest.fixture
 def quick_figures(monkeypatch):
     """Report figures at screen resolution, for tests of a report's tables, text and merging:
-    its PNGs take a fraction of the time at 72 dpi than at 300. tests/test_report.py checks the
+    its PNGs take a fraction of the time at 72 dpi than at 300. tests/experiments/test_report.py checks the
     figure files themselves in full."""
     from eabc.experiments import figures  # noqa: PLC0415
 

@@ -48,7 +48,7 @@ Gymnasium's ``envs/mujoco/assets/ant.xml``; Gymnasium's also has a tracking came
 lacks. Bodies, geoms, joints (ranges, damping 1, armature 1), density 5, friction, margins and the
 torso's start height 0.75 are the same in both. With these edits the compiled model equals the one
 of D4RL's file in every field (checked field by field and by bit-identical rollouts when the
-embedded copy was replaced; tests/test_antmaze.py pins the physical values)."""
+embedded copy was replaced; tests/data/test_antmaze.py pins the physical values)."""
 FRAME_SKIP = 5
 """Physics steps per environment step (D4RL's AntEnv)."""
 TORQUE_LIMIT = 30.0

@@ -2,7 +2,7 @@
 
 Not through ``d3rlpy.datasets.get_minari``: d3rlpy 2.8.1 there puts each Minari episode's final
 observation into the observation array, so from the second episode on every observation is
-shifted against its action (tests/test_d3rlpy.py shows it). d3rlpy cuts episodes at terminals and
+shifted against its action (tests/data/test_d3rlpy.py shows it). d3rlpy cuts episodes at terminals and
 timeouts and takes ``s'`` from the next row of the same episode; the last step of an episode that
 did not terminate it drops (it has no next row), as D4RL's ``qlearning_dataset`` does.
 """

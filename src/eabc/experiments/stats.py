@@ -7,7 +7,7 @@ Why not ``rliable`` itself (its release 1.2.0): it needs
 ``arch < 8``, and arch 7.2 does not import under pandas 3 (``deprecate_kwarg()`` TypeError), while
 arch 8 breaks rliable's bootstrap (``random_state=None`` refused); it would also bring seaborn and
 absl, and it takes one score matrix of equal runs per task, where a sweep stopped early has ragged
-tasks. The methods here are rliable's, on the same definitions (``tests/test_stats.py`` checks the
+tasks. The methods here are rliable's, on the same definitions (``tests/experiments/test_stats.py`` checks the
 IQM against SciPy's trimmed mean, the profile against a hand computation, and that the bootstrap
 resamples runs within each task).
 

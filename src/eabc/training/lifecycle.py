@@ -366,7 +366,7 @@ def prepared(algorithm: Algorithm, dataset: Dataset, convention: str | None = No
 
 # One compiled program rather than dozens of eagerly compiled operations (and cacheable on disk).
 # It runs once, so LLVM's O1 is enough: the same parameters bit for bit as XLA's default O3
-# (tests/test_training.py), compiled in about half the time (6.6 -> 3.5 s and 14 -> 7 s for two
+# (tests/training/test_training.py), compiled in about half the time (6.6 -> 3.5 s and 14 -> 7 s for two
 # algorithms' inits, on two busy cores). Its fusions come from XLA's older LLVM emitter, not
 # the MLIR fusion emitters: still the same bits for every algorithm, compiled in 38% less time
 # again (all 21 algorithms' inits at the contract checks' sizes: 40.8 -> 25.2 s of CPU).

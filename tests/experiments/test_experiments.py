@@ -87,7 +87,7 @@ def test_sweep_expansion_ids_and_validation():
             assert len(expand(preset)) == 6 * 2 * 5, name
         elif not name.startswith("study"):  # the paper's grids: 15 datasets x 5 seeds at least
             assert len(expand(preset)) >= 15 * 5, name
-        else:  # the study's presets (tests/test_study.py): 5 or 2 datasets, 2-3 seeds
+        else:  # the study's presets (tests/experiments/test_study.py): 5 or 2 datasets, 2-3 seeds
             assert len(expand(preset)) >= 3 * 3, name
 
 

@@ -8,7 +8,7 @@ import ast
 import re
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SCANNED = ("src", "tests", "benchmarks", "docs")
 TEXT = {".py", ".md", ".sh", ".yaml", ".yml", ".toml", ".txt", ".json", ".cfg"}
 OUTSIDE = re.compile(r"\.\./shared|SPEC\.md|\bSPEC\b")

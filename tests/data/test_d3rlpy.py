@@ -172,7 +172,7 @@ def test_the_block_docs_datasets_md_shows_runs(tmp_path, monkeypatch):
 
     monkeypatch.setenv("EABC_CACHE_DIR", str(tmp_path))
     generate.make("hopper-medium", generate.dataset_path("hopper-medium", tmp_path), size=2_000)
-    text = (Path(__file__).resolve().parents[1] / "docs" / "datasets.md").read_text()
+    text = (Path(__file__).resolve().parents[2] / "docs" / "datasets.md").read_text()
     [block] = re.findall(r"(?ms)^```python\n(.*?)^```", text)
     namespace: dict = {}
     exec(block, namespace)  # noqa: S102

@@ -20,7 +20,7 @@ from eabc.data import generate
 from eabc.experiments.spec import expand
 from eabc.training.config import resolve_agent_config
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 DOCUMENTS = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
 SHELL_FENCES = ("```bash", "```sh", "```shell", "```console")
 
@@ -193,7 +193,7 @@ def test_the_python_blocks_run_as_a_reader_would_run_them(tmp_path, monkeypatch)
     """README's Python block (train, load the policy, act), then README's ONNX export and
     docs/deploy.md's block on the file it wrote, in one directory as a reader would, on a tiny
     dataset of the same name. Every Python block of README and docs/ is run: docs/datasets.md's
-    (d3rlpy) by tests/test_d3rlpy.py, in d3rlpy's own environment."""
+    (d3rlpy) by tests/data/test_d3rlpy.py, in d3rlpy's own environment."""
     blocks = {doc.relative_to(ROOT).as_posix(): python_blocks(doc.read_text()) for doc in DOCUMENTS}
     assert {doc for doc, found in blocks.items() if found} == {
         "README.md", "docs/deploy.md", "docs/datasets.md"

@@ -28,7 +28,7 @@ MINARI_METADATA = {
     "algorithm_name": "a test's random rows",
     "author": "eabc's tests",
     "author_email": "nobody@example.invalid",
-    "code_permalink": "tests/test_data.py",
+    "code_permalink": "tests/data/test_data.py",
     "description": "made by a test",
     "eval_env": "Pendulum-v1",
 }

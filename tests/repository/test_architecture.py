@@ -4,7 +4,7 @@ in one sitting.
 An import circle (a module that, through others, imports itself) makes the order of imports
 matter and hides which module a name belongs to; one closed by an import inside a function is a
 circle all the same, so imports in function bodies count here too. The layers between packages
-are import-linter's (tests/test_layers.py); this checks every module against every other.
+are import-linter's (tests/repository/test_layers.py); this checks every module against every other.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from pathlib import Path
 
 import grimp
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 MAX_LINES = 500
 """The longest a file in src/ may be."""
 

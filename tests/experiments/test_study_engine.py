@@ -18,7 +18,7 @@ from eabc import cli
 from eabc.experiments import archive_merge, job_process, planning, study
 from eabc.experiments.spec import expand
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 SCRIPT = ROOT / "benchmarks" / "study.sh"
 
 

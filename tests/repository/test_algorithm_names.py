@@ -14,7 +14,7 @@ from pathlib import Path
 
 from eabc.agents import ALGORITHMS, MODULES
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 GENERIC = ("src/eabc/training", "src/eabc/experiments", "src/eabc/evaluation.py")
 """What may ask an algorithm's description but never name one."""
 PROGRAM_COMMANDS = (
