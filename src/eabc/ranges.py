@@ -270,9 +270,10 @@ def flat(config: Any) -> dict[str, Any]:
     """``config``'s settings by name, a group's settings in its place: what ``config.json``
     records and ``--set`` and a sweep spec take."""
     out = {}
+    inner = groups(type(config))
     for field in dataclasses.fields(config):
         value = getattr(config, field.name)
-        if field.name in groups(type(config)):
+        if field.name in inner:
             out |= flat(value)
         else:
             out[field.name] = value
@@ -306,9 +307,7 @@ def validated(config: Any, values: Mapping[str, Any], who: str = "") -> Any:
         for group, settings in grouped.items():
             own[group] = validated(getattr(config, group), settings)
         return dataclasses.replace(config, **own)
-    except SettingError as error:
-        raise SettingError(f"{who}{error}") from None
-    except (ValueError, TypeError) as error:
+    except (ValueError, TypeError) as error:  # SettingError is a ValueError too
         raise SettingError(f"{who}{error}") from None
 
 
