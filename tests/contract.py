@@ -96,7 +96,7 @@ def _check_contract(tmp_path, pendulum_dataset, algo: str) -> None:
     for a, b in zip(saved, restored):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
-    raw = checkpoint.load_raw(runs[0].run_dir)  # what load_policy, export and sweeps read
+    raw = checkpoint.load_raw(runs[0].run_dir, infinite=algorithm.infinite_state)  # as sweeps read
     assert raw[checkpoint.LAYOUT] == algorithm.state_layout
     assert int(pytree.find(raw["agent"], "step")) == 10
     saved_actor = pytree.find(raw["agent"], "actor")

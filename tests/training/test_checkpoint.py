@@ -110,3 +110,20 @@ def test_eabc_checkpoints_without_a_layout_still_resume(tmp_path, pendulum_datas
         np.testing.assert_array_equal(np.asarray(resumed.state["agent"].actor[name]), value)
     policy = load_policy(run.run_dir)
     assert policy(pendulum_dataset.observations[0]).shape == (1,)
+
+
+def test_an_algorithms_declared_infinite_entries_load_and_no_others(tmp_path, pendulum_dataset):
+    """eabc-auto's controller starts with an infinite reward range: its step-0 checkpoint resumes
+    and serves a policy, because the algorithm declares those entries; read without that
+    declaration, the same file is refused as corrupt."""
+    run = started(
+        tmp_path, pendulum_dataset, "eabc-auto", {"hidden_dims": (16, 16), "num_critics": 2}
+    )
+    assert np.isinf(np.asarray(run.state["agent"].controller["reward_min"]))
+    declared = get_algorithm("eabc-auto").infinite_state
+    assert checkpoint.load_raw(run.run_dir, infinite=declared)["agent"]["controller"]
+    resumed = lifecycle.resume(run.run_dir, pendulum_dataset, lock=False)
+    assert np.isinf(np.asarray(resumed.state["agent"].controller["reward_max"]))
+    assert load_policy(run.run_dir)(pendulum_dataset.observations[0]).shape == (1,)
+    with pytest.raises(CheckpointError, match="NaN/inf in agent/controller/reward_"):
+        checkpoint.load_raw(run.run_dir)

@@ -88,6 +88,10 @@ class BCWeightConfig(Settings):
             )
 
 
+UNBOUNDED = frozenset({"reward_min", "reward_max"})
+"""The controller's entries that hold +-inf until the first batch is seen: the reward range."""
+
+
 def initial_controller(config: Any) -> dict[str, jax.Array]:
     """bc_weight auto's state at step 0: ``p``, the reward range seen so far and, while
     calibrating, the calibration's running sum and count."""

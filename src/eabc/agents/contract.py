@@ -130,6 +130,10 @@ class Algorithm:
     this one fails (``failures.md``; EABC's is ``eabc-ln``); ``eabc report --fix`` names another."""
     divergence_advice: str = ""
     """What to try when its critics run away: the trainer's warning ends with it."""
+    infinite_state: frozenset[str] = frozenset()
+    """Entries of its state (by their last name) that may hold +-inf, such as running bounds that
+    start infinite before any data is seen; a checkpoint with +-inf anywhere else, or NaN
+    anywhere, is refused as corrupt (:func:`eabc.training.checkpoint.check_values`)."""
     state_layout: int = 1
     """The layout of ``init``'s state in checkpoints, which record it: raise it when the state's
     entries move or are renamed, so that checkpoints of the old layout are refused with a message

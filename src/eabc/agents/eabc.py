@@ -379,6 +379,7 @@ _FAMILY = {
     "traced_settings": ("confidence_level", "alpha", "pessimism_beta"),
     # The authors' TD3_BC code trains on the stored rewards (TD3_BC/main.py changes none).
     "reward_convention": "raw",
+    "infinite_state": bc_weights.UNBOUNDED,
 }
 DIVERGENCE_ADVICE = (
     "For EABC, more behaviour cloning (a higher --confidence-level) is what stopped it on our "

@@ -349,6 +349,10 @@ def update(
     return state, {**metrics, **state.rollout_metrics, "model_buffer": state.buffer_count}
 
 
+HALTS = frozenset({"halt_threshold"})
+"""The state's entries that may hold +-inf: the halting threshold, inf where rollouts never halt."""
+
+
 def _fit_seconds(config: MOPOConfig) -> float:
     return dynamics.fit_seconds(config.model)
 
@@ -357,5 +361,6 @@ ALGORITHMS = (
     # steps/s: the reference host's (eabc.timing), by benchmarks/algorithms.py, without the fit.
     # state_layout 2: the SAC state as one field
     Algorithm("mopo", "MOPO", PRESETS["mopo"], init, update, column=9, actor="tanh-gaussian",
-              pretrain=pretrain, pretrain_s=_fit_seconds, resolve=resolve, steps_per_s=168.0, state_layout=2),
+              pretrain=pretrain, pretrain_s=_fit_seconds, resolve=resolve, steps_per_s=168.0, state_layout=2,
+              infinite_state=HALTS),
 )  # fmt: skip

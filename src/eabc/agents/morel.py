@@ -102,5 +102,6 @@ ALGORITHMS = (
     # steps/s: the reference host's (eabc.timing), by benchmarks/algorithms.py, without the fit.
     # state_layout 2: MOPO's state, which holds the SAC state as one field
     Algorithm("morel", "MOReL", PRESETS["morel"], init, update, column=8, actor="tanh-gaussian",
-              pretrain=pretrain, pretrain_s=_fit_seconds, resolve=resolve, steps_per_s=192.0, state_layout=2),
+              pretrain=pretrain, pretrain_s=_fit_seconds, resolve=resolve, steps_per_s=192.0, state_layout=2,
+              infinite_state=mopo.HALTS),
 )  # fmt: skip

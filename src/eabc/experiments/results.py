@@ -191,7 +191,9 @@ def _checkpoint_history(run_dir: Path, config: dict) -> tuple[tuple | None, str 
     if not (run_dir / CHECKPOINT).exists():
         return None, None
     try:
-        raw = identity.checked(load_raw(run_dir), run_dir, config, warn=False)
+        algorithm = ALGORITHMS.get(config.get("train", {}).get("algo"))
+        infinite = algorithm.infinite_state if algorithm else frozenset()
+        raw = identity.checked(load_raw(run_dir, infinite=infinite), run_dir, config, warn=False)
         step = int(pytree.find(raw["agent"], "step"))
     except (CheckpointError, OSError, KeyError, TypeError, ValueError) as error:
         return None, str(error)

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from eabc import paths, pytree
+from eabc.agents import get_algorithm
 from eabc.experiments.spec import RunSpec, differences
 from eabc.training import checkpoint
 from eabc.training.directory import SUMMARY, lost_progress
@@ -55,7 +56,8 @@ def status_with_reason(run: RunSpec, root: Path) -> tuple[str, int, str]:
         return "done", steps, ""
     if (run_dir / checkpoint.CHECKPOINT).exists():
         try:
-            return "partial", int(pytree.find(checkpoint.load_raw(run_dir)["agent"], "step")), ""
+            raw = checkpoint.load_raw(run_dir, infinite=get_algorithm(run.algo).infinite_state)
+            return "partial", int(pytree.find(raw["agent"], "step")), ""
         except (ValueError, KeyError, TypeError) as error:
             return "broken", 0, str(error)
     train = run.train_config()  # a run past its first checkpoint is not started again unasked

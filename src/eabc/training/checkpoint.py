@@ -106,13 +106,15 @@ _REDO = (
 )
 
 
-def load_raw(run_dir: Path) -> dict[str, Any]:
-    """The checkpoint as nested dicts of arrays and plain values, its checksum verified."""
+def load_raw(run_dir: Path, *, infinite: frozenset[str] = frozenset()) -> dict[str, Any]:
+    """The checkpoint as nested dicts of arrays and plain values, its checksum verified, and its
+    values checked (:func:`check_values`; ``infinite``: the algorithm's
+    :attr:`~eabc.agents.contract.Algorithm.infinite_state`)."""
     path = Path(run_dir) / CHECKPOINT
     if not path.exists():
         raise FileNotFoundError(f"no checkpoint in {run_dir}; the run has not saved one yet")
     raw, _ = _read(path)
-    check_values({k: raw.get(k) for k in ("agent", "normalizer")}, path)
+    check_values({k: raw.get(k) for k in ("agent", "normalizer")}, path, infinite)
     return raw
 
 
@@ -122,25 +124,21 @@ def read_tree(path: Path) -> dict[str, Any]:
     raw, checked = _read(Path(path))
     if not checked:
         raise CheckpointError(f"{path} has no checksum: it is not a file this package wrote")
-    check_values(raw, Path(path))
+    check_values(raw, Path(path), frozenset())
     return raw
 
 
-INFINITE = frozenset({"reward_min", "reward_max", "halt_threshold"})
-"""State entries that may hold +-inf: running bounds that start infinite before any data is seen
-(an adaptive BC-weight controller's reward range) and a model-based algorithm's halting threshold,
-infinite until its model is fitted. Every other float, and NaN anywhere, is a trace of corruption."""
-
-
-def check_values(tree: Any, path: Path) -> None:
-    """Refuse NaN in any float of ``tree``, and +-inf anywhere but :data:`INFINITE`: training
-    never writes them (a run whose losses turn NaN/inf stops before it checkpoints), so they are
-    corruption or an edit, whatever the checksum says (a checksum can be recomputed)."""
+def check_values(tree: Any, path: Path, infinite: frozenset[str]) -> None:
+    """Refuse NaN in any float of ``tree``, and +-inf anywhere but in the entries named
+    ``infinite`` (an algorithm's state entries that may start infinite:
+    :attr:`~eabc.agents.contract.Algorithm.infinite_state`): training never writes them (a run
+    whose losses turn NaN/inf stops before it checkpoints), so they are corruption or an edit,
+    whatever the checksum says (a checksum can be recomputed)."""
     for name, leaf in _leaves(tree):
         array = np.asarray(leaf)
         if array.dtype.kind not in "fc":
             continue
-        allowed = name.rsplit("/", 1)[-1] in INFINITE
+        allowed = name.rsplit("/", 1)[-1] in infinite
         if np.isnan(array).any() or (not allowed and not np.isfinite(array).all()):
             raise CheckpointError(
                 f"{path} holds NaN/inf in {name}, which training never writes: the file is "
@@ -170,19 +168,6 @@ def _read(path: Path) -> tuple[dict[str, Any], bool]:
     return raw, checked
 
 
-def load(
-    run_dir: Path,
-    template: dict[str, Any],
-    what: str = "this run",
-    algo: str = "this algorithm",
-    state_layout: int = 1,
-) -> dict[str, Any]:
-    """Restore into the structure of ``template``, refusing a checkpoint of another state layout
-    than ``state_layout`` (``algo``'s) or whose structure, shapes or dtypes differ from it
-    (another run's checkpoint: ``what`` names this run's settings)."""
-    return restore(load_raw(run_dir), run_dir, template, what, algo, state_layout)
-
-
 def restore(
     raw: dict[str, Any],
     run_dir: Path,
@@ -191,7 +176,10 @@ def restore(
     algo: str = "this algorithm",
     state_layout: int = 1,
 ) -> dict[str, Any]:
-    """:func:`load` of a payload already read (and its identity checked and removed)."""
+    """Restore a payload already read (and its identity checked and removed) into the structure
+    of ``template``, refusing a checkpoint of another state layout than ``state_layout``
+    (``algo``'s) or whose structure, shapes or dtypes differ from it (another run's checkpoint:
+    ``what`` names this run's settings)."""
     raw = check_layout(raw, run_dir, algo, state_layout)
     check_structure(raw, pytree.to_state_dict(template), Path(run_dir) / CHECKPOINT, what)
     return pytree.from_state_dict(template, raw)

@@ -129,7 +129,8 @@ def read_checkpoint(run_dir: str | Path) -> tuple[dict, Algorithm, dict]:
         finally:
             env.close()
     algorithm = get_algorithm(config["train"]["algo"])
-    raw = identity.checked(checkpoint.load_raw(run_dir), run_dir, config)
+    raw = checkpoint.load_raw(run_dir, infinite=algorithm.infinite_state)
+    raw = identity.checked(raw, run_dir, config)
     raw = checkpoint.check_layout(raw, run_dir, algorithm.name, algorithm.state_layout)
     agent_config = agent_config_from_json(algorithm, config.get("agent", {}))
     path = run_dir / checkpoint.CHECKPOINT

@@ -326,7 +326,9 @@ def _build(run_dir, config, agent_config, dataset, state, saved=None) -> Run:
     if state == "checkpoint":
         what = f"this {config.algo} run ({directory.settings_text(algorithm, agent_config)}, {dataset.name})"
         template = {**fresh, "evaluations": None}
-        raw = identity.checked(checkpoint.load_raw(run_dir), run_dir, saved)
+        raw = identity.checked(
+            checkpoint.load_raw(run_dir, infinite=algorithm.infinite_state), run_dir, saved
+        )
         stored = checkpoint.restore(
             raw, run_dir, template, what, config.algo, algorithm.state_layout
         )
