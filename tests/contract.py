@@ -19,10 +19,14 @@ import jax
 import numpy as np
 
 from eabc import load_policy, pytree, ranges
-from eabc.agents import get_algorithm
+from eabc.agents import ALGORITHMS, get_algorithm
 from eabc.agents.contract import Algorithm
 from eabc.training import checkpoint, chunks, lifecycle, trainer
 from eabc.training.config import TrainConfig
+
+NAMES = list(ALGORITHMS)
+FIRST_HALF = NAMES[: len(NAMES) // 2]
+"""test_contract.py checks these, test_contract_more.py the rest, so that the halves run side by side."""
 
 TINY_INTS = {"buffer_capacity": 4096, "model_max_epochs": 1, "model_members": 2, "model_elites": 1,
              "num_dropout_samples": 4, "num_target_actions": 4}  # fmt: skip

@@ -16,6 +16,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import jax
+
 from eabc.paths import cache_dir
 
 OFF = ("0", "off", "false", "no", "none")
@@ -29,8 +31,6 @@ def enable(
     ``path`` overrides ``$EABC_COMPILE_CACHE``; ``cache_root`` replaces the eabc cache directory
     in the default ``CACHE_ROOT/xla``. Call it before the first compilation of a process.
     """
-    import jax  # noqa: PLC0415
-
     setting = str(path) if path is not None else os.environ.get("EABC_COMPILE_CACHE", "")
     if setting.strip().lower() in OFF:
         return None

@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable
 
+import gymnasium as gym
 import numpy as np
 
 from eabc.data import tasks
@@ -76,8 +77,6 @@ def _near_rounding_boundary(exact: np.ndarray, rounded: np.ndarray) -> np.ndarra
 
 
 def make_env(env_id: str):
-    import gymnasium as gym  # noqa: PLC0415
-
     try:
         return tasks.make_env(env_id)
     except gym.error.Error as error:

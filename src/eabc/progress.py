@@ -15,6 +15,8 @@ import time
 from collections.abc import Iterable, Iterator
 from typing import Any, TextIO
 
+from tqdm.auto import tqdm
+
 from eabc.timing import duration
 
 LOG_SECONDS = float(os.environ.get("EABC_PROGRESS_SECONDS", 60.0))
@@ -52,8 +54,6 @@ def bar(
     if not enabled:
         return LineProgress(total, desc, unit, initial, quiet=True, iterable=iterable)
     if on_terminal():
-        from tqdm.auto import tqdm  # noqa: PLC0415
-
         if estimate:
             say(f"{desc}: {total - initial:,} {unit}s to go, {estimate}")
         return tqdm(iterable, total=total, initial=initial, desc=desc, unit=unit, **tqdm_options)
@@ -62,8 +62,6 @@ def bar(
 
 def write(text: str) -> None:
     """A message that does not break a bar on the terminal (tqdm.write); plain elsewhere."""
-    from tqdm.auto import tqdm  # noqa: PLC0415
-
     tqdm.write(text, file=sys.stderr)
 
 

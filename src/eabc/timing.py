@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import platform
 import time
 
 from eabc import paths
@@ -69,8 +70,8 @@ REFERENCE = HostSpeed()
 def probe_gflops(seconds: float = 0.5) -> float:
     """XLA's GFLOP/s on the critic ensemble's ``[10, 256, 256]`` batched product, now: 20
     chained products in one compiled scan, best of 3 timings over ``seconds``."""
-    import jax  # noqa: PLC0415
-    import jax.numpy as jnp  # noqa: PLC0415
+    import jax  # noqa: PLC0415 (the JAX-free data makers import this module)
+    import jax.numpy as jnp  # noqa: PLC0415 (as above)
 
     k, b, h, chain = 10, 256, 256, 20
     x = jax.random.normal(jax.random.PRNGKey(0), (k, b, h))
@@ -124,8 +125,6 @@ def _speed(gflops: float) -> HostSpeed:
 
 
 def _host() -> str:
-    import platform  # noqa: PLC0415
-
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     return f"{platform.node()} {platform.processor() or platform.machine()} {cores}"
 

@@ -4,13 +4,10 @@ test_contract_more.py, so that the two halves run side by side): see tests/contr
 from __future__ import annotations
 
 import pytest
-from contract import check_contract
+from contract import FIRST_HALF, check_contract
 
 from eabc.agents import ALGORITHMS, MODULES, get_algorithm
 from eabc.agents.contract import field_docs
-
-NAMES = list(ALGORITHMS)
-FIRST_HALF = NAMES[: len(NAMES) // 2]
 
 
 def test_every_algorithm_is_described_in_its_own_file():

@@ -5,8 +5,7 @@ from __future__ import annotations
 import jax
 import numpy as np
 import pytest
-from contract import check_contract
-from test_contract import FIRST_HALF
+from contract import FIRST_HALF, check_contract
 
 from eabc import pytree
 from eabc.agents import ALGORITHMS

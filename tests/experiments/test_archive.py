@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 import pytest
-from test_report import make_results
+from synthetic_results import make_results
 
 from eabc.cli import main
 from eabc.experiments import archive_merge, report

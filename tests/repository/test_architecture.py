@@ -131,3 +131,74 @@ def test_no_file_in_src_is_longer_than_one_sitting():
         if (lines := len(path.read_text().splitlines())) > MAX_LINES
     }
     assert long == {}, f"over {MAX_LINES} lines: split these by what they do"
+
+
+OPTIONAL_EXTRAS = frozenset({"minari", "ray", "onnx", "d3rlpy"})
+"""Packages of pyproject's extras: a module imports them where it needs them, so that the rest
+works without them."""
+
+
+def deferred_imports(source: str) -> list[tuple[int, str, str]]:
+    """``(line, module, text)`` of every import inside a function or class body of ``source``
+    (module-level ``try``/``if`` blocks count as the top)."""
+    tree = ast.parse(source)
+    lines = source.splitlines()
+    found = []
+    for scope in ast.walk(tree):
+        if not isinstance(scope, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            continue
+        for node in ast.walk(scope):
+            if isinstance(node, ast.Import):
+                module = node.names[0].name
+            elif isinstance(node, ast.ImportFrom):
+                module = "." * node.level + (node.module or "")
+            else:
+                continue
+            found.append((node.lineno, module, lines[node.lineno - 1]))
+    return sorted(set(found))
+
+
+def unexplained(path: Path, source: str) -> list[str]:
+    """Imports inside functions that are neither of an optional extra, nor in a command of the
+    CLI (whose command modules import each command's rooms when the command runs, so that a
+    parser is built without them), nor say on their line why they wait: ``# noqa: PLC0415
+    (why)``."""
+    command = path.parent.name == "cli"
+    bad = []
+    for line, module, text in deferred_imports(source):
+        root = module.lstrip(".").split(".")[0]
+        comment = text.partition("#")[2]
+        if root in OPTIONAL_EXTRAS or command or "(" in comment:
+            continue
+        bad.append(
+            f"{path.relative_to(ROOT) if path.is_absolute() else path}:{line}: {text.strip()}"
+        )
+    return bad
+
+
+def test_the_import_scan_tells_a_reason_from_none():
+    source = (
+        "import os\n"
+        "try:\n    import fcntl\nexcept ImportError:\n    fcntl = None\n"
+        "def f():\n    import minari\n    import json\n"
+        "    import jax  # noqa: PLC0415 (data workers stay free of JAX)\n"
+        "class C:\n    def g(self):\n        from eabc import zoo  # noqa: PLC0415\n"
+    )
+    assert [m for _, m, _ in deferred_imports(source)] == ["minari", "json", "jax", "eabc"]
+    assert [b.split(": ", 1)[1] for b in unexplained(Path("x.py"), source)] == [
+        "import json",
+        "from eabc import zoo  # noqa: PLC0415",
+    ]
+    assert unexplained(Path("cli/x.py"), source) == []
+
+
+def test_imports_wait_inside_functions_only_for_a_stated_reason():
+    """At the top of the module, unless an optional extra needs it, the CLI defers a command's
+    rooms, or the line says why (the JAX-free data makers, a platform's fallback, an order that
+    matters)."""
+    bad = [
+        problem
+        for path in sorted((ROOT / "src" / "eabc").rglob("*.py"))
+        for problem in unexplained(path, path.read_text())
+    ]
+    assert bad == [], "move these to the top, or say on the line why they wait:\n" + "\n".join(bad)

@@ -6,7 +6,7 @@ import json
 import subprocess
 
 import pytest
-from test_report import make_results
+from synthetic_results import make_results
 
 from eabc.experiments import report, results
 from eabc.training import provenance

@@ -107,7 +107,7 @@ class _Ant(gym.Env):
     metadata = {"render_modes": []}
 
     def __init__(self, maze: Maze | None):
-        import mujoco  # noqa: PLC0415
+        import mujoco  # noqa: PLC0415 (every eabc.data import registers the ants; MuJoCo loads with the first)
 
         self._mujoco = mujoco
         self.model = mujoco.MjModel.from_xml_string(model_xml(maze))

@@ -33,6 +33,9 @@ import os
 from pathlib import Path
 
 import numpy as np
+from matplotlib.colors import LogNorm
+from matplotlib.figure import Figure
+from matplotlib.patches import Circle, Rectangle
 
 from eabc import numpy_networks
 from eabc.data import antmaze, mazes, zoo
@@ -456,12 +459,6 @@ def checks(dataset: Dataset) -> dict:
 def plot_coverage(dataset: Dataset, path: str | os.PathLike) -> Path:
     """A PNG of where the data's torso positions lie over the maze's walls (log-scaled counts),
     with the start cell and the relabelling goal's 0.5 m circle."""
-    import matplotlib  # noqa: PLC0415
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # noqa: PLC0415
-    from matplotlib.colors import LogNorm  # noqa: PLC0415
-
     maze = maze_of_env(dataset.env_id)
     if maze is None:
         raise DatasetError(
@@ -471,7 +468,8 @@ def plot_coverage(dataset: Dataset, path: str | os.PathLike) -> Path:
     half = mazes.SCALING / 2
     rows, cols = maze.shape
     low, high = maze.cell_to_xy((0, 0)) - half, maze.cell_to_xy((rows - 1, cols - 1)) + half
-    fig, ax = plt.subplots(figsize=(1 + cols * 0.7, 1 + rows * 0.7), dpi=120)
+    fig = Figure(figsize=(1 + cols * 0.7, 1 + rows * 0.7), dpi=120)
+    ax = fig.subplots()
     xy = dataset.observations[:, :2]
     *_, image = ax.hist2d(
         xy[:, 0], xy[:, 1], bins=(cols * 16, rows * 16), range=list(zip(low, high)),
@@ -479,9 +477,9 @@ def plot_coverage(dataset: Dataset, path: str | os.PathLike) -> Path:
     )  # fmt: skip
     for cell in maze.wall_cells:
         x, y = maze.cell_to_xy(cell) - half
-        ax.add_patch(plt.Rectangle((x, y), mazes.SCALING, mazes.SCALING, color="0.35"))
+        ax.add_patch(Rectangle((x, y), mazes.SCALING, mazes.SCALING, color="0.35"))
     ax.plot(*maze.start_xy, "o", color="white", markeredgecolor="black", label="start")
-    goal = plt.Circle(relabel_goal(maze), mazes.GOAL_TOLERANCE, fill=False, color="red", lw=2)
+    goal = Circle(relabel_goal(maze), mazes.GOAL_TOLERANCE, fill=False, color="red", lw=2)
     ax.add_patch(goal)
     ax.plot([], [], "o", mfc="none", color="red", label="goal (reward 1)")
     ax.set(xlim=(low[0], high[0]), ylim=(low[1], high[1]), aspect="equal", xlabel="x", ylabel="y")
@@ -490,5 +488,4 @@ def plot_coverage(dataset: Dataset, path: str | os.PathLike) -> Path:
     fig.colorbar(image, ax=ax, label="transitions per bin")
     path = Path(path)
     fig.savefig(path, bbox_inches="tight")
-    plt.close(fig)
     return path

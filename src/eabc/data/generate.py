@@ -8,6 +8,7 @@ controller (:mod:`eabc.data.antmaze_collect`).
 
 from __future__ import annotations
 
+import difflib
 import json
 import os
 from collections.abc import Callable
@@ -17,7 +18,7 @@ import h5py
 import numpy as np
 
 from eabc import progress, timing
-from eabc.data import parallel, tasks
+from eabc.data import antmaze_collect, parallel, tasks, zoo
 from eabc.data.dataset import Dataset, DatasetError, concatenate
 from eabc.data.hdf5_writer import ARRAYS, save_hdf5
 from eabc.data.loaders import load_file
@@ -47,8 +48,6 @@ def antmaze_names() -> list[str]:
 def antmaze_recipe_names() -> list[str]:
     """The AntMaze datasets by their other recipes, ``antmaze-KIND@RECIPE`` (the plain names use
     :data:`eabc.data.antmaze_collect.DEFAULT_RECIPE`)."""
-    from eabc.data import antmaze_collect  # noqa: PLC0415
-
     others = [r for r in antmaze_collect.RECIPES if r != antmaze_collect.DEFAULT_RECIPE]
     return [f"{name}@{r}" for r in others for name in antmaze_names()]
 
@@ -61,8 +60,6 @@ def builtin_names() -> list[str]:
 
 def did_you_mean(name: str) -> str:
     """`` (did you mean X?)`` for the built-in name closest to a mistyped one, else ``""``."""
-    import difflib  # noqa: PLC0415
-
     close = difflib.get_close_matches(name.lower(), builtin_names(), n=1, cutoff=0.8)
     return f" (did you mean {close[0]}?)" if close else ""
 
@@ -87,8 +84,6 @@ def load_or_make(name: str, cache_dir: str | os.PathLike | None = None, seed: in
 def is_current(path: str | os.PathLike, name: str, zoo_root=None) -> bool:
     """Whether ``path`` exists and was made from the zoo's present policies (see zoo.fingerprint)
     by this version of the rollout code (random datasets: always, they use no policy)."""
-    from eabc.data import zoo  # noqa: PLC0415
-
     path = Path(path)
     if not path.is_file():  # missing, or a directory or FIFO in its place: made again
         return False
@@ -104,8 +99,6 @@ def is_current(path: str | os.PathLike, name: str, zoo_root=None) -> bool:
         return False
     try:
         if env_name == "antmaze":
-            from eabc.data import antmaze_collect  # noqa: PLC0415
-
             made_by = metadata.get("antmaze_recipe", antmaze_collect.LEGACY_RECIPE)
             if made_by != antmaze_collect.split_name(name)[1]:
                 return False
@@ -168,8 +161,6 @@ def make(
     Deterministic: the same name, seed, size and zoo give a bit-identical file, whatever the
     number of ``workers`` (processes; see :mod:`eabc.data.parallel` for where they help).
     """
-    from eabc.data import zoo  # noqa: PLC0415
-
     task = tasks.parse_task(name)
     if name not in builtin_names() or task is None:
         raise DatasetError(
@@ -224,8 +215,6 @@ def make(
 def _make_antmaze(name: str, kind: str, path, seed: int, size: int, zoo_root, workers) -> Path:
     """An AntMaze dataset with its conventions as its own settings: the evaluation environment,
     reference scores 0 and 1 (the score is 100 x the success rate) and the reward offset -1."""
-    from eabc.data import antmaze_collect  # noqa: PLC0415
-
     actor, card = antmaze_collect.load_policy(zoo_root)
     num_envs = antmaze_collect.NUM_ENVS
     recipe = antmaze_collect.split_name(name)[1]
@@ -266,8 +255,6 @@ def _make_antmaze(name: str, kind: str, path, seed: int, size: int, zoo_root, wo
 
 def _file_recipe(path: Path) -> str | None:
     """The AntMaze recipe the file ``path`` was made by (None: no readable AntMaze file)."""
-    from eabc.data import antmaze_collect  # noqa: PLC0415
-
     try:
         with h5py.File(path, "r") as f:
             metadata = json.loads(f.attrs.get("metadata", "{}"))
@@ -280,8 +267,6 @@ def keep_other_recipe(path: Path, name: str) -> Path | None:
     """Before ``name`` is made at ``path``: a file there made by another AntMaze recipe is moved
     to that recipe's name beside it (``antmaze-umaze.hdf5`` made by ``planner-v0`` becomes
     ``antmaze-umaze@planner-v0.hdf5``) where nothing has that name yet; the new place, or None."""
-    from eabc.data import antmaze_collect  # noqa: PLC0415
-
     base, wanted = antmaze_collect.split_name(name)
     made_by = _file_recipe(path) if path.is_file() else None
     if made_by is None or made_by == wanted:
@@ -301,8 +286,6 @@ def adopt_recipe_file(path: Path, name: str) -> None:
     same dataset under its other name was made by ``name``'s recipe (a cache from before recipes
     had names: ``antmaze-umaze.hdf5`` by ``planner-v0``, asked for as
     ``antmaze-umaze@planner-v0``), that file is moved here."""
-    from eabc.data import antmaze_collect  # noqa: PLC0415
-
     base, wanted = antmaze_collect.split_name(name)
     if path.exists():
         return
@@ -315,8 +298,6 @@ def adopt_recipe_file(path: Path, name: str) -> None:
 def rollouts(name: str, seed: int, size: int, zoo_root=None) -> list[parallel.Rollout]:
     """The rollouts the MuJoCo dataset ``name`` (not medium-expert: its parts are the medium and
     expert datasets) is made of, in order: one, or medium-replay's one per training phase."""
-    from eabc.data import zoo  # noqa: PLC0415
-
     env_name, kind = tasks.parse_task(name)
     env_id = tasks.ENVS[env_name].env_id
     if kind == "random":
@@ -345,8 +326,6 @@ def _replay_counts(phases: list, size: int) -> list[int]:
 
 def _replay_phases(env_name: str, size: int, zoo_root) -> list[dict]:
     """medium-replay's phases as its metadata describes them."""
-    from eabc.data import zoo  # noqa: PLC0415
-
     phases = zoo.replay_schedule(env_name, zoo_root)
     return [
         {"policy": policy or "uniform random", "train_steps": [start, stop], "transitions": count}

@@ -16,7 +16,9 @@ import zipfile
 import zlib
 from pathlib import Path
 
+import h5py
 import numpy as np
+from gymnasium import spaces
 
 from eabc import paths
 from eabc.data import schema, tasks
@@ -75,8 +77,6 @@ def _read_npz(path: Path) -> tuple[dict[str, np.ndarray], dict]:
 
 
 def _read_hdf5(path: Path) -> tuple[dict[str, np.ndarray], dict]:
-    import h5py  # noqa: PLC0415
-
     try:
         with h5py.File(path, "r") as f:
             headers = schema.hdf5_headers(path, f)
@@ -303,8 +303,6 @@ def load_minari(dataset_id: str) -> Dataset:
 
 def _check_flat_observations(dataset_id: str, space, env_spec) -> None:
     """Refuse, in one line, observations that are not one flat vector per step."""
-    from gymnasium import spaces  # noqa: PLC0415
-
     if isinstance(space, spaces.Box) and len(space.shape) == 1:
         return
     keys = set(space.spaces) if isinstance(space, spaces.Dict) else set()
@@ -469,6 +467,4 @@ def _create(minari, dataset: Dataset, dataset_id: str, episodes: list, env) -> N
 
 
 def _box(array: np.ndarray):
-    from gymnasium.spaces import Box  # noqa: PLC0415
-
-    return Box(-np.inf, np.inf, array.shape[1:], np.float32)
+    return spaces.Box(-np.inf, np.inf, array.shape[1:], np.float32)

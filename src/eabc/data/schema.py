@@ -35,6 +35,7 @@ import zipfile
 from pathlib import Path
 from typing import Any
 
+import h5py
 import numpy as np
 
 from eabc.data.dataset import DatasetError
@@ -138,8 +139,6 @@ def npz_headers(path: Path, archive: zipfile.ZipFile) -> dict[str, Header]:
 
 def hdf5_headers(path: Path, file) -> dict[str, Header]:
     """The headers of the top-level HDF5 datasets a dataset uses, read without their data."""
-    import h5py  # noqa: PLC0415
-
     headers = {}
     for key in ARRAYS:
         if key not in file:

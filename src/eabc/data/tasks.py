@@ -7,6 +7,8 @@ import dataclasses
 import re
 import warnings
 
+import gymnasium as gym
+
 
 @dataclasses.dataclass(frozen=True)
 class EnvInfo:
@@ -101,8 +103,6 @@ def make_env(env_id: str, **kwargs):
     is (Hopper's and Walker2d's healthy reward only while healthy), so no score would compare.
     The filter is added to Python's list rather than set in a ``catch_warnings`` block, which is
     not safe while another thread makes an environment (``eabc study`` makes datasets in one)."""
-    import gymnasium as gym  # noqa: PLC0415
-
     warnings.filterwarnings(
         "ignore", V4_OUT_OF_DATE, DeprecationWarning, r"gymnasium\.envs\.registration"
     )

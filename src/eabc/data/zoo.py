@@ -15,6 +15,7 @@ pack`` (:mod:`eabc.training.zoo_build`) make entries from ``eabc sac`` runs.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 from collections.abc import Callable
@@ -97,8 +98,6 @@ def fingerprint(env: str, kind: str, root=None) -> str | None:
     Stored in each made dataset's metadata, so a cached dataset made from an older zoo is noticed
     and remade rather than silently reused.
     """
-    import hashlib  # noqa: PLC0415
-
     if kind == "random":
         return None
     info = card(env, root)  # a missing zoo stops here, with the message that says what to do

@@ -17,6 +17,10 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from matplotlib import colormaps
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from matplotlib.ticker import EngFormatter
 
 from eabc.agents import ALGORITHMS, get_algorithm
 from eabc.experiments.labels import (
@@ -38,9 +42,6 @@ def _new_figure(panels: int, panel_size=(4.0, 3.0), bottom: float = 0.6, top: fl
     Margins are fixed in inches (``bottom``, ``top``) rather than found by ``tight_layout``, which
     would draw every figure twice.
     """
-    from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: PLC0415
-    from matplotlib.figure import Figure  # noqa: PLC0415
-
     cols = min(panels, 3) or 1
     rows = max(math.ceil(panels / cols), 1)
     width, height = panel_size[0] * cols, panel_size[1] * rows + bottom + top
@@ -61,8 +62,6 @@ def _new_figure(panels: int, panel_size=(4.0, 3.0), bottom: float = 0.6, top: fl
 
 
 def _colors(keys: Sequence[str]) -> dict[str, tuple]:
-    from matplotlib import colormaps  # noqa: PLC0415
-
     cmap = colormaps["tab10" if len(keys) <= 10 else "tab20"]
     return {key: cmap(i % cmap.N) for i, key in enumerate(keys)}
 
@@ -135,8 +134,6 @@ def _plot_curves(
     ylabel: str = "normalised score",
     vector: Sequence[str] = (),
 ) -> Path:
-    from matplotlib.ticker import EngFormatter  # noqa: PLC0415
-
     datasets = sorted(stats["dataset"].unique(), key=dataset_sort_key)
     fig, axes = _new_figure(len(datasets), bottom=0.7 + 0.3 * math.ceil(len(keys) / 6))
     colors, handles = _colors(keys), {}

@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 import pydantic
+import yaml
 
 from eabc import paths, ranges
 from eabc.agents import get_algorithm
@@ -132,8 +133,6 @@ def _text(value) -> str:
 def load_spec(path: str | os.PathLike) -> dict[str, Any]:
     """A sweep specification from a YAML file: a regular file (a FIFO would block), UTF-8 text,
     YAML, a mapping; :func:`check_spec` checks its keys."""
-    import yaml  # noqa: PLC0415
-
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"sweep specification {path} does not exist")

@@ -41,7 +41,7 @@ class RunLock:
         self._fd: int | None = None
         self._fallback = None
         if fcntl is None:
-            import filelock  # noqa: PLC0415
+            import filelock  # noqa: PLC0415 (fcntl's fallback, where there is none)
 
             self._fallback = filelock.FileLock(self.run_dir / LOCK, timeout=0)
 
@@ -64,7 +64,7 @@ class RunLock:
     def _take(self) -> bool:
         """Lock ``.lock`` (made if missing); False if a live process holds it."""
         if self._fallback is not None:
-            import filelock  # noqa: PLC0415
+            import filelock  # noqa: PLC0415 (fcntl's fallback, where there is none)
 
             try:
                 self._fallback.acquire()

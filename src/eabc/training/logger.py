@@ -5,8 +5,13 @@ from __future__ import annotations
 import collections
 import csv
 import io
+import json
 import math
 from pathlib import Path
+
+from matplotlib.figure import Figure
+from tensorboardX import SummaryWriter
+from tensorboardX.summary import hparams
 
 from eabc import paths
 from eabc.training.checkpoint import atomic_write
@@ -35,8 +40,6 @@ class RunLogger:
                     self.rows.append(_numbers(cells))
         self.writer = None
         if tensorboard:
-            from tensorboardX import SummaryWriter  # noqa: PLC0415
-
             # TensorBoard drops every event at or after purge_step: the rows after the checkpoint
             # go, the checkpoint's own row (kept in log.csv too) stays.
             # Event files are named by the second they open in; two resumes within one second
@@ -56,8 +59,6 @@ class RunLogger:
     def _write_hparams(self, run_dir: Path) -> None:
         """The run's settings (config.json) for TensorBoard's HParams tab, with its evaluation
         scalars as the metrics, so that runs compare by setting."""
-        from tensorboardX.summary import hparams  # noqa: PLC0415
-
         config = read_config_or_none(run_dir)
         if config is None:
             return
@@ -94,8 +95,6 @@ class RunLogger:
 
 
 def read_config_or_none(run_dir: Path) -> dict | None:
-    import json  # noqa: PLC0415
-
     try:
         return json.loads(paths.read_file(run_dir / "config.json").decode())
     except (OSError, ValueError):
@@ -208,16 +207,12 @@ def _numbers(cells: dict[str, str]) -> dict[str, float]:
 
 def plot_curve(evaluations: list[dict[str, float]], path: Path, title: str) -> None:
     """Normalised score (or return) against gradient steps."""
-    import matplotlib  # noqa: PLC0415
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # noqa: PLC0415
-
     key = "score" if evaluations and "score" in evaluations[0] else "return_mean"
     steps = [e["step"] for e in evaluations]
     values = [e[key] for e in evaluations]
     spread = [e.get(f"{key.split('_', maxsplit=1)[0]}_std", 0.0) for e in evaluations]
-    fig, ax = plt.subplots(figsize=(6, 4))
+    fig = Figure(figsize=(6, 4))
+    ax = fig.subplots()
     ax.plot(steps, values, color="C0")
     ax.fill_between(
         steps,
@@ -234,4 +229,3 @@ def plot_curve(evaluations: list[dict[str, float]], path: Path, title: str) -> N
     ax.legend(loc="lower right")
     fig.tight_layout()
     fig.savefig(path, dpi=100)
-    plt.close(fig)

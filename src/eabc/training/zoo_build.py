@@ -9,6 +9,7 @@ the first time training reaches it (D4RL stopped SAC early at about a third of t
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import shutil
@@ -17,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from eabc.data import tasks, zoo
+from eabc.data import antmaze, antmaze_collect, mazes, tasks, zoo
 from eabc.data.dataset import DatasetError
 from eabc.evaluation import make_env
 from eabc.training import checkpoint
@@ -151,8 +152,6 @@ def build(
 
 def _training_returns(run_dir: Path) -> dict[int, float]:
     """Mean training-episode return (sampled actions) of each logged window, by step."""
-    import csv  # noqa: PLC0415
-
     with open(run_dir / "log.csv", newline="") as f:
         return {
             int(row["step"]): float(row["train_return"])
@@ -207,8 +206,6 @@ def build_antmaze(
     controller with these rounded weights (and the data's action noise) takes the ant from the
     start to the evaluation goal within the time limit, and how often the ant flips; the same for
     the policy alone on the open plane, toward goals 5-10 m away."""
-    from eabc.data import antmaze, antmaze_collect, mazes  # noqa: PLC0415
-
     run_dir = Path(run_dir)
     config = _sac_config(run_dir)
     if config["env_id"] != antmaze.DIRECTION_ENV_ID:
@@ -265,8 +262,6 @@ def build_antmaze(
 
 def _evaluation_returns(run_dir: Path) -> dict[int, float]:
     """The evaluation return (deterministic actions) logged at each evaluation step."""
-    import csv  # noqa: PLC0415
-
     with open(run_dir / "log.csv", newline="") as f:
         return {
             int(row["step"]): float(row["eval_return"])
