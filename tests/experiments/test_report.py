@@ -469,15 +469,15 @@ def test_a_missing_baseline_lists_the_labels_there_are(results):
         compare.comparison_table(unscored, "td3bc")
 
 
-def _run_directory(root, algo: str, returns: list[float]):
+def _run_directory(root, algo: str, returns: list[float], dataset="my_data", name=None, **train):
     """A finished run of ``algo`` on a user's file without reference scores, as training
     leaves it: config.json, log.csv (evaluations with a return and no score), summary.json."""
-    run_dir = root / algo
+    run_dir = root / (name or algo)
     run_dir.mkdir(parents=True)
     steps = 100 * len(returns)
-    train = {"dataset": str(root / "my_data.npz"), "algo": algo, "seed": 0, "steps": steps,
-             "env": "Hopper-v4"}  # fmt: skip
-    config = {"train": train, "agent": {}, "dataset": {"name": "my_data", "ref_min_score": None}}
+    train = {"dataset": str(root / f"{dataset}.npz"), "algo": algo, "seed": 0, "steps": steps,
+             "env": "Hopper-v4", **train}  # fmt: skip
+    config = {"train": train, "agent": {}, "dataset": {"name": dataset, "ref_min_score": None}}
     (run_dir / "config.json").write_text(json.dumps(config))
     rows = ["step,return_mean,return_std,score,wall_time,steps_per_s"]
     rows += [f"{100 * (i + 1)},{r},1.0,,{i + 1},100.0" for i, r in enumerate(returns)]
@@ -595,3 +595,38 @@ def test_writing_a_report_says_its_stages(results, tmp_path, capfd, quick_figure
     assert "eabc: report: figures (learning curves, ablations, runtime)\n" in err
     assert re.search(r"eabc: report: done in ([\d.]+ (s|minutes)|less than a second)\n", err)
     assert err.index(": tables") < err.index(": figures") < err.index(": done in")
+
+
+def test_the_report_says_which_reward_convention_each_run_trained_on(tmp_path, quick_figures):
+    """runs.csv records each run's reward convention where its data has sparse goal rewards (a
+    run from before the setting: r - 1, what it trained on), and report.md counts them."""
+    root = tmp_path / "root"
+    _run_directory(root, "td3bc", [0.5, 0.7], "antmaze-umaze", reward_convention="raw")
+    _run_directory(root, "iql", [0.6, 0.8], "antmaze-umaze", reward_convention="iql-scale")
+    _run_directory(root, "bc", [0.6, 0.6], "antmaze-umaze")  # config.json without the setting
+    _run_directory(
+        root, "td3bc", [500.0, 700.0], "hopper-medium", name="hopper", reward_convention="raw"
+    )
+    main(["report", str(root)])
+    runs = pd.read_csv(root / "report" / "runs.csv", keep_default_na=False).set_index("run_id")
+    assert runs["reward_convention"].to_dict() == {
+        "bc": "minus-one", "hopper": "", "iql": "iql-scale", "td3bc": "raw"
+    }  # fmt: skip
+    text = (root / "report" / "report.md").read_text()
+    assert "`iql-scale` 1 (IQL); `minus-one` 1 (BC); `raw` 1 (TD3+BC)." in text
+    _run_directory(tmp_path / "mujoco", "td3bc", [500.0, 700.0], "hopper-medium")
+    main(["report", str(tmp_path / "mujoco")])
+    assert "Sparse goal rewards" not in (tmp_path / "mujoco" / "report" / "report.md").read_text()
+    # A report from before the column, read back: runs.csv keeps no config, so it cannot say.
+    runs.drop(columns="reward_convention").to_csv(root / "report" / "runs.csv")
+    main(
+        [
+            "report",
+            str(tmp_path / "none"),
+            "--include",
+            str(root / "report"),
+            "--out",
+            str(tmp_path / "again"),
+        ]
+    )
+    assert "`not recorded` 3 (BC, IQL, TD3+BC)." in (tmp_path / "again" / "report.md").read_text()

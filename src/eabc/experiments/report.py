@@ -18,6 +18,7 @@ import numpy as np
 import pandas as pd
 
 from eabc import progress, timing
+from eabc.data import tasks
 from eabc.experiments import compare, figures
 from eabc.experiments.compare import PUBLISHED, RECOMMENDED
 from eabc.experiments.labels import ABLATION_PARAMETERS, display_name, labelled, paper_table
@@ -85,6 +86,29 @@ def vector_extensions(machines: pd.Series) -> list[str]:
             if isa and isa not in found:
                 found.append(isa)
     return found
+
+
+def reward_conventions(runs: pd.DataFrame) -> str:
+    """Which reward convention the runs on sparse goal rewards trained on, by algorithm (each
+    run's is runs.csv's ``reward_convention``); "" when no run's data has such rewards."""
+    if "reward_convention" not in runs:
+        return ""
+    goal = runs[
+        runs["dataset"].map(lambda d: tasks.reward_offset(tasks.parse_task(str(d))) is not None)
+    ]
+    if goal.empty:
+        return ""
+    convention = goal["reward_convention"].astype(object).fillna("").astype(str)
+    convention = convention.replace("", "not recorded")
+    parts = []
+    for name, group in goal.groupby(convention, sort=True):
+        algos = ", ".join(display_name(a) for a in dict.fromkeys(group["algo"]))
+        parts.append(f"`{name}` {len(group)} ({algos})")
+    return (
+        "Sparse goal rewards trained on (runs.csv's `reward_convention`: `raw` the stored 0/1, "
+        "`minus-one` r - 1, `iql-scale` IQL's scaling; `not recorded` in reports from before the "
+        "column): " + "; ".join(parts) + ".\n"
+    )
 
 
 def _diverged_runs(runs: pd.DataFrame) -> list[str]:
@@ -377,6 +401,9 @@ def write_report(
                 f"**{len(uncommitted)} run(s) ran code with uncommitted changes**, which no commit "
                 "reproduces: " + ", ".join(f"`{r}`" for r in uncommitted) + ".\n"
             )
+    conventions = reward_conventions(runs)
+    if conventions:
+        sections.append(conventions)
     diverged = _diverged_runs(runs)
     if diverged:
         sections.append(

@@ -3,8 +3,9 @@
 ``ROOT/results.sqlite`` has two tables:
 
 - ``runs``: one row per run directory: ``run_id, run_dir, dataset, env, kind, algo, seed,
-  variant`` and the algorithm settings (``num_critics, confidence_level, pessimism``), then
-  ``status`` (done, partial, diverged: stopped on NaN/inf, broken: its config.json cannot be read
+  variant`` and the algorithm settings (``num_critics, confidence_level, pessimism``),
+  ``reward_convention`` (what it trained on where the data's rewards are sparse goal rewards:
+  :mod:`eabc.training.rewards`; empty for other data), then ``status`` (done, partial, diverged: stopped on NaN/inf, broken: its config.json cannot be read
   or fails its schema (:mod:`eabc.training.run_config`), or its log.csv cannot be read, or
   damaged: its files contradict each other, e.g. a log.csv cut short or deleted, a summary.json
   it disagrees with, another run's checkpoint; with why in ``config``;
@@ -43,7 +44,7 @@ import pandas as pd
 from eabc import paths, pytree
 from eabc.agents import ALGORITHMS
 from eabc.data import tasks
-from eabc.training import identity, provenance, run_config
+from eabc.training import identity, provenance, rewards, run_config
 from eabc.training.checkpoint import CHECKPOINT, CONFIG, CheckpointError, file_mode, load_raw
 from eabc.training.config import FINAL_EVALUATIONS
 from eabc.training.directory import SUMMARY
@@ -114,6 +115,15 @@ def read_run(run_dir: Path, root: Path | None = None) -> tuple[dict, list[dict]]
         return _broken_row(run_dir, run_id, f"{run_dir}: {type(error).__name__}: {error}"), []
 
 
+def _reward_convention(train: dict, task: tuple[str, str] | None) -> str:
+    """What the run trained on where its data's rewards are sparse goal rewards (AntMaze's): its
+    recorded ``reward_convention``, or the one every run used before the setting existed; "" for
+    data the setting does not apply to."""
+    if tasks.reward_offset(task) is None:
+        return ""
+    return train.get("reward_convention") or rewards.LEGACY
+
+
 def _read_run(run_dir: Path, run_id: str, config: dict) -> tuple[dict, list[dict]]:
     train, agent = config["train"], config.get("agent", {})
     dataset = config.get("dataset", {}).get("name") or train["dataset"]
@@ -166,6 +176,7 @@ def _read_run(run_dir: Path, run_id: str, config: dict) -> tuple[dict, list[dict
         "seed": int(train["seed"]),
         "variant": spec.get("variant", ""),
         **{k: agent.get(k) for k in SETTINGS},
+        "reward_convention": _reward_convention(train, task),
         "status": "damaged" if problem else _status(summary, train),
         "steps": steps,
         "steps_target": int(train["steps"]),
@@ -325,7 +336,7 @@ def store(root: str | Path, runs: pd.DataFrame, evals: pd.DataFrame) -> None:
 
 RUN_COLUMNS = [
     "run_id", "run_dir", "dataset", "env", "kind", "algo", "seed", "variant", *SETTINGS,
-    "status", "steps", "steps_target", "wall_time_s", "steps_per_s", "final_score",
+    "reward_convention", "status", "steps", "steps_target", "wall_time_s", "steps_per_s", "final_score",
     "final_return", "q_out_of_range_step", "diverged_step", "q_mean_max",
     *(f"{k}_last" for k in DIAGNOSTICS), *(f"{k}_onset" for k in ONSET), "machine", "code",
     "config",
