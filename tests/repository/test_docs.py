@@ -102,6 +102,26 @@ def test_code_points_into_the_algorithm_page_at_headings_that_exist():
             assert anchor in anchors, f"{path.relative_to(ROOT)}: algorithm.md#{anchor}"
 
 
+DATE = re.compile(r"\b20\d\d-\d\d-\d\d\b")
+"""A calendar date. The docs read without them; the hardware a figure ran on stays, and the
+provenance data under docs/results (JSON, CSV) keeps its dates."""
+
+
+def test_the_markdown_names_no_calendar_dates():
+    dated = [
+        f"{page.relative_to(ROOT)}:{number}: {line.strip()}"
+        for page in _markdown_files()
+        for number, line in enumerate(page.read_text(encoding="utf-8").splitlines(), 1)
+        if DATE.search(line)
+    ]
+    assert not dated, dated
+
+
+def test_the_date_check_can_fail():
+    assert DATE.search("measured on the Zen 5 host, 2026-12-02 07:26 UTC")
+    assert not DATE.search("EABC's / 1.24 (1.13-1.24), K = 10, 2-4x slower")
+
+
 def _file_map() -> str:
     text = (ROOT / "docs" / "extending.md").read_text(encoding="utf-8")
     section = text[text.index("## Where things are") :]
