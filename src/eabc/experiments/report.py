@@ -106,8 +106,8 @@ def reward_conventions(runs: pd.DataFrame) -> str:
         parts.append(f"`{name}` {len(group)} ({algos})")
     return (
         "Sparse goal rewards trained on (runs.csv's `reward_convention`: `raw` the stored 0/1, "
-        "`minus-one` r - 1, `iql-scale` IQL's scaling; `not recorded` in reports from before the "
-        "column): " + "; ".join(parts) + ".\n"
+        "`minus-one` r - 1, others as the algorithm's file defines them; `not recorded` in "
+        "reports from before the column): " + "; ".join(parts) + ".\n"
     )
 
 
