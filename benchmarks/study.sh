@@ -12,6 +12,10 @@
 # docs/results/study-1m/ (slices in file-name order), skipping what docs/results/study-1m already
 # holds, starting only the groups that end within STUDY_WITHIN (default 480s), and writes every
 # finished run to $OUT after each group: a command stopped at its limit still returns them.
+# Until docs/results/study-1m/width-gpu.md exists, the last WIDTH_LIMIT seconds (default 90) of
+# the call measure the device's throughput against the run axis's width, with and without
+# LayerNorm (benchmarks/width.py: eabc and eabc-ln at widths 1 and 25), into $OUT/width.md:
+# commit it as docs/results/study-1m/width-gpu.md, and later calls give the study that time.
 # Afterwards, here: eabc report --include docs/results/study-1m OUT --out docs/results/study-1m
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -49,5 +53,24 @@ python3 -c "import eabc" 2>/dev/null || export PYTHONPATH="$PWD/src${PYTHONPATH:
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>/dev/null || true
 export PYTHONUNBUFFERED=1
 root="$(mktemp -d)"
-timeout "${STUDY_LIMIT:-530}" python3 -m eabc.cli study docs/results/study-1m/[0-9]*.yaml \
-  --out "$OUT" --root "$root" --within "${STUDY_WITHIN:-480s}" "${extra[@]}"
+limit="${STUDY_LIMIT:-530}"
+within="${STUDY_WITHIN:-480s}"
+within="${within%s}"
+width=()
+if [ "${extra[0]:-}" = --smoke ]; then  # the same path, on a CPU and at toy sizes
+  width=(--algos td3bc --widths 1 2 --steps 5 --repeats 1 --size 5000)
+elif [ ! -f docs/results/study-1m/width-gpu.md ] && nvidia-smi -L >/dev/null 2>&1; then
+  width=(--algos eabc eabc-ln --widths 1 25 --steps 500 --repeats 3)
+fi
+if [ "${#width[@]}" -gt 0 ]; then
+  limit=$((limit - ${WIDTH_LIMIT:-90}))
+  within=$((within - ${WIDTH_LIMIT:-90}))
+fi
+status=0
+timeout "$limit" python3 -m eabc.cli study docs/results/study-1m/[0-9]*.yaml \
+  --out "$OUT" --root "$root" --within "${within}s" "${extra[@]}" || status=$?
+if [ "${#width[@]}" -gt 0 ]; then
+  timeout "${WIDTH_LIMIT:-90}" python3 -u benchmarks/width.py "${width[@]}" > "$OUT/width.md" 2>&1 \
+    || echo "width.py ended with status $? (a timeout is 124)" >> "$OUT/width.md"
+fi
+exit "$status"

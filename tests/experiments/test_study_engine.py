@@ -25,15 +25,17 @@ SCRIPT = ROOT / "benchmarks" / "study.sh"
 def test_the_device_script_smoke_run_streams_finished_runs_that_report_reads(tmp_path):
     """The very script a lent GPU runs, at toy sizes on this CPU: the queue's first two groups
     (two seeds each; each group one program over the slices' three hopper datasets) train, and
-    OUT holds exactly the study's files, its runs done and read back by `eabc report
-    --include`; a second study given --include OUT trains nothing."""
+    OUT holds exactly the study's files and the width table, its runs done and read back by
+    `eabc report --include`; a second study given --include OUT trains nothing."""
     out = tmp_path / "out"
     env = {**os.environ, "OUT": str(out), "EABC_FAST_COMPILE": "1", "TMPDIR": str(tmp_path)}
     done = subprocess.run(
         ["bash", str(SCRIPT), "--smoke"], env=env, capture_output=True, text=True, timeout=900
     )
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
-    assert sorted(p.name for p in out.iterdir()) == sorted(study.OUT_FILES)
+    assert sorted(p.name for p in out.iterdir()) == sorted([*study.OUT_FILES, "width.md"])
+    width = (out / "width.md").read_text()  # measured after the study, in its own seconds
+    assert "| td3bc | 1 |" in width and "| td3bc | 2 |" in width, width
     runs, evaluations = archive_merge.read_archive(out)
     hoppers = ("hopper-medium", "hopper-medium-replay", "hopper-random")
     assert sorted(runs["run_id"]) == sorted(
