@@ -5,10 +5,11 @@
 - ``runs``: one row per run directory: ``run_id, run_dir, dataset, env, kind, algo, seed,
   variant`` and the algorithm settings (``num_critics, confidence_level, pessimism``),
   ``reward_convention`` (what it trained on where the data's rewards are sparse goal rewards:
-  :mod:`eabc.training.rewards`; empty for other data), then ``status`` (done, partial, diverged: stopped on NaN/inf, broken: its config.json cannot be read
-  or fails its schema (:mod:`eabc.training.run_config`), or its log.csv cannot be read, or
-  damaged: its files contradict each other, e.g. a log.csv cut short or deleted, a summary.json
-  it disagrees with, another run's checkpoint; with why in ``config``;
+  :mod:`eabc.training.rewards`; empty for other data), then ``status`` (done, partial,
+  diverged: stopped on NaN/inf, broken: its config.json cannot be read or fails its schema
+  (:mod:`eabc.training.run_config`), or its log.csv cannot be read, or damaged: its files
+  contradict each other, e.g. a log.csv cut short or deleted, a summary.json it disagrees with,
+  another run's checkpoint; with why in ``config``;
   ``eabc train --resume`` rebuilds a damaged log from the checkpoint), ``steps``,
   ``steps_target``, ``wall_time_s`` (time in training chunks), ``steps_per_s`` (the median of
   log.csv's per-chunk steps/s: update steps only, no evaluation, no compilation outliers),
@@ -336,8 +337,8 @@ def store(root: str | Path, runs: pd.DataFrame, evals: pd.DataFrame) -> None:
 
 RUN_COLUMNS = [
     "run_id", "run_dir", "dataset", "env", "kind", "algo", "seed", "variant", *SETTINGS,
-    "reward_convention", "status", "steps", "steps_target", "wall_time_s", "steps_per_s", "final_score",
-    "final_return", "q_out_of_range_step", "diverged_step", "q_mean_max",
+    "reward_convention", "status", "steps", "steps_target", "wall_time_s", "steps_per_s",
+    "final_score", "final_return", "q_out_of_range_step", "diverged_step", "q_mean_max",
     *(f"{k}_last" for k in DIAGNOSTICS), *(f"{k}_onset" for k in ONSET), "machine", "code",
     "config",
 ]  # fmt: skip
