@@ -56,6 +56,10 @@ root="$(mktemp -d)"
 limit="${STUDY_LIMIT:-530}"
 within="${STUDY_WITHIN:-480s}"
 within="${within%s}"
+if ! [[ "$within" =~ ^[0-9]+$ && "$limit" =~ ^[0-9]+$ ]]; then
+  echo "study.sh: STUDY_WITHIN and STUDY_LIMIT are seconds (e.g. STUDY_WITHIN=480s STUDY_LIMIT=530)" >&2
+  exit 2
+fi
 width=()
 if [ "${extra[0]:-}" = --smoke ]; then  # the same path, on a CPU and at toy sizes
   width=(--algos td3bc --widths 1 2 --steps 5 --repeats 1 --size 5000)
