@@ -339,3 +339,14 @@ def test_offline_iql_and_cql_improve_on_the_untrained_policy(tmp_path, pendulum_
     overrides = LEARNING_OVERRIDES[algo]
     untrained, late, evaluations = late_gain(tmp_path, pendulum_dataset, algo, overrides)
     assert late > untrained + MARGIN, (untrained, evaluations)
+
+
+def test_iql_takes_the_authors_antmaze_settings_on_antmaze_data_unless_set():
+    """Before: AntMaze runs trained with the MuJoCo expectile 0.7 and temperature 3, where the
+    authors' AntMaze configuration has 0.9 and 10."""
+    antmaze = resolve_agent_config("iql", "antmaze-medium-play", {})
+    assert (antmaze.expectile, antmaze.temperature) == (0.9, 10.0)
+    mine = resolve_agent_config("iql", "antmaze-umaze@planner-v0", {"temperature": 5.0})
+    assert (mine.expectile, mine.temperature) == (0.9, 5.0)
+    hopper = resolve_agent_config("iql", "hopper-medium", {})
+    assert (hopper.expectile, hopper.temperature) == (0.7, 3.0)
