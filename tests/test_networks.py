@@ -4,6 +4,8 @@ values and gradients, one layer and whole ensembles, large offsets."""
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -273,6 +275,30 @@ def test_single_network_and_vmapped_seeds_equal_the_formula():
     assert_close(got, want)
     for g, w in zip(jax.tree.leaves(got_grads), jax.tree.leaves(want_grads)):
         assert_close(g, w)
+
+
+@pytest.mark.parametrize(
+    "sizes, members, layer_norm, hidden_bias, output_bound",
+    [((5, 16, 16, 3), None, False, None, None), ((4, 8, 8, 8, 1), 3, True, 0.1, 3e-3)],
+)
+def test_an_eagerly_drawn_network_is_the_one_drawn_inside_a_program(
+    sizes, members, layer_norm, hidden_bias, output_bound
+):
+    """Called outside any program, ``init_mlp`` runs one program of its own, compiled with
+    the init options; inside a jit or a vmap it is traced into the caller's. Same bits."""
+    draw = functools.partial(
+        networks.init_mlp, sizes=sizes, num_members=members, layer_norm=layer_norm,
+        hidden_bias=hidden_bias, output_bound=output_bound,
+    )  # fmt: skip
+    keys = jax.random.split(jax.random.PRNGKey(3), 2)
+    eager = draw(keys[0])
+    traced = jax.jit(draw)(keys[0])
+    vmapped = jax.tree.map(lambda x: x[0], jax.vmap(draw)(keys))
+    assert set(eager) == set(traced) == set(vmapped)
+    for name in eager:
+        np.testing.assert_array_equal(np.asarray(eager[name]), np.asarray(traced[name]), name)
+        np.testing.assert_array_equal(np.asarray(eager[name]), np.asarray(vmapped[name]), name)
+    assert networks._draw_mlp_compiled._cache_size() >= 1  # the eager call ran its own program
 
 
 def test_nan_inputs_stay_nan():

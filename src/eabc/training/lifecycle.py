@@ -20,7 +20,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from eabc import paths, ranges
+from eabc import networks, paths, ranges
 from eabc.agents import Algorithm, get_algorithm
 from eabc.data import sources
 from eabc.data.dataset import Dataset, DatasetError, Normalizer, reference_scores_problem
@@ -366,14 +366,10 @@ def prepared(algorithm: Algorithm, dataset: Dataset, convention: str | None = No
     return rewards.apply(algorithm, dataset, convention)
 
 
-# One compiled program rather than dozens of eagerly compiled operations (and cacheable on disk).
-# It runs once, so LLVM's O1 is enough: the same parameters bit for bit as XLA's default O3
-# (tests/training/test_training.py), compiled in about half the time (6.6 -> 3.5 s and 14 -> 7 s for two
-# algorithms' inits, on two busy cores). Its fusions come from XLA's older LLVM emitter, not
-# the MLIR fusion emitters: still the same bits for every algorithm, compiled in 38% less time
-# again (all 21 algorithms' inits at the contract checks' sizes: 40.8 -> 25.2 s of CPU).
+# One compiled program rather than dozens of eagerly compiled operations (and cacheable on disk),
+# built with the options of programs that run once (networks.INIT_COMPILE_OPTIONS).
 init_agent = jax.jit(
     lambda init, *args: init(*args),
     static_argnums=(0, 2, 3, 4),
-    compiler_options={"xla_backend_optimization_level": 1, "xla_cpu_use_fusion_emitters": False},
+    compiler_options=networks.INIT_COMPILE_OPTIONS,
 )
