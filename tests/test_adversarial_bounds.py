@@ -414,13 +414,13 @@ def test_ctrl_c_on_a_sweep_is_one_line_and_stops_its_workers_quietly(tmp_path, n
 
 
 def test_ctrl_c_on_data_make_is_one_line_and_leaves_no_half_file(tmp_path):
-    """Ctrl-C while the dataset is written (its temporary file has just appeared: writing 300K rows
-    takes about a second). It used to end with exit code 0 and "Exception ignored ... KeyboardInterrupt"
+    """Ctrl-C while the dataset is written (its temporary file has just appeared: writing 100K rows
+    takes about a third of a second, the test's poll 0.05 s). It used to end with exit code 0 and "Exception ignored ... KeyboardInterrupt"
     (the interrupt raised in an h5py weakref callback, where Python drops exceptions)."""
     from eabc.data.loaders import load_file  # noqa: PLC0415
 
     datasets = tmp_path / "cache" / "datasets"
-    proc = _eabc("data", "make", "hopper-random", "--size", "300000", "--cache-dir",
+    proc = _eabc("data", "make", "hopper-random", "--size", "100000", "--cache-dir",
                  str(tmp_path / "cache"))  # fmt: skip
     code, lines = _ctrl_c(proc, lambda: any(datasets.glob("*.tmp")))
     assert code == 130, lines
@@ -429,7 +429,7 @@ def test_ctrl_c_on_data_make_is_one_line_and_leaves_no_half_file(tmp_path):
     left = [p for p in datasets.rglob("*") if p.is_file()]
     if "complete and kept" in lines[-1]:  # the signal came as the file was renamed
         assert [p.name for p in left] == ["hopper-random.hdf5"]
-        assert load_file(left[0]).size == 300_000
+        assert load_file(left[0]).size == 100_000
     else:
         assert "was not made" in lines[-1] and "eabc data make hopper-random" in lines[-1], lines
         assert not left

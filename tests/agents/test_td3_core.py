@@ -26,12 +26,11 @@ MAX_ACTION = 1.5
 TINY = {"hidden_dims": (8, 8)}
 CASES = {
     "td3bc": ("td3bc", {}),
-    "td3": ("td3", {}),
+    "td3-every-3": ("td3", {"policy_freq": 3}),  # chunks of 5 and 4 cut its period of 3
     "eabc": ("eabc", {"num_critics": 3, "confidence_level": 0.5}),
     "eabc-ln": ("eabc-ln", {"num_critics": 3}),
     "eabc-quantile": ("eabc-quantile", {"num_critics": 3, "quantile_level": 0.7}),
     "eabc-auto": ("eabc-auto", {"num_critics": 3, "auto_rate": 0.2, "auto_initial_p": 0.8}),
-    "eabc-every-3": ("eabc", {"num_critics": 3, "confidence_level": 0.5, "policy_freq": 3}),
     "rebrac": ("rebrac", {"actor_bc_weight": 0.05, "critic_bc_weight": 0.01, "hidden_dims": (8,) * 3}),
     "wpc": ("wpc", {}),
 }  # fmt: skip
