@@ -293,7 +293,9 @@ def test_an_eagerly_drawn_network_is_the_one_drawn_inside_a_program(
     keys = jax.random.split(jax.random.PRNGKey(3), 2)
     eager = draw(keys[0])
     traced = jax.jit(draw)(keys[0])
-    vmapped = jax.tree.map(lambda x: x[0], jax.vmap(draw)(keys))
+    # Under vmap in a program of its own, built quickly (the default build is the line above).
+    vmap = jax.jit(jax.vmap(draw), compiler_options=networks.INIT_COMPILE_OPTIONS)
+    vmapped = jax.tree.map(lambda x: x[0], vmap(keys))
     assert set(eager) == set(traced) == set(vmapped)
     for name in eager:
         np.testing.assert_array_equal(np.asarray(eager[name]), np.asarray(traced[name]), name)
