@@ -51,15 +51,18 @@ def pytest_unconfigure(config):
 
 
 LONGEST_FIRST = (
-    "test_model_based.py", "test_bear_uwac.py", "test_iql_cql.py", "test_experiments.py",
-    "test_sac.py", "test_contract_more.py", "test_eabc_variants.py", "test_training.py",
-    "test_faults.py", "test_rebrac.py", "test_zoo.py", "test_contract.py", "test_bc_wpc.py",
+    "test_model_based.py", "test_experiments.py", "test_td3_core.py", "test_bear_uwac.py",
+    "test_contract_more.py", "test_study_engine.py", "test_sac.py", "test_adversarial_bounds.py",
+    "test_iql_cql.py", "test_faults.py", "test_antmaze.py", "test_training.py",
+    "test_run_axis.py", "test_contract.py", "test_networks.py", "test_eabc_variants.py",
+    "test_eval_pool.py", "test_rebrac.py", "test_zoo.py", "test_benchmarks.py",
+    "test_parallel_data.py",
 )  # fmt: skip
-"""The modules that take longest (by the CPU time each takes alone), run first. pytest-xdist
-hands each worker one module at a time in collection order (pyproject.toml turns off its own
-order, by number of tests, which started test_experiments' 4 tests, a minute, near the end), so
-the long ones start early and the two workers end together: about 25 s less than xdist's order
-in a simulation of the suite's 2-core run (makespan 443 against 468 s; 440 is half the total)."""
+"""The modules that take longest (each one's summed test durations in a full run: 27-140 s on a
+busy 2-core Zen 4, the rest under 25 s each), run first. pytest-xdist hands each worker one
+module at a time in collection order (pyproject.toml turns off its own order, by number of
+tests, which started test_experiments' 4 tests, a minute, near the end), so the long ones start
+early, the short ones fill the end, and the two workers end together."""
 
 
 def pytest_collection_modifyitems(items):
