@@ -414,9 +414,10 @@ def test_ctrl_c_on_a_sweep_is_one_line_and_stops_its_workers_quietly(tmp_path, n
 
 
 def test_ctrl_c_on_data_make_is_one_line_and_leaves_no_half_file(tmp_path):
-    """Ctrl-C while the dataset is written (its temporary file has just appeared: writing 100K rows
-    takes about a third of a second, the test's poll 0.05 s). It used to end with exit code 0 and "Exception ignored ... KeyboardInterrupt"
-    (the interrupt raised in an h5py weakref callback, where Python drops exceptions)."""
+    """Ctrl-C while the dataset is written (its temporary file has just appeared: writing 100K
+    rows takes about a third of a second, the test's poll 0.05 s). It used to end with exit code 0
+    and "Exception ignored ... KeyboardInterrupt" (the interrupt raised in an h5py weakref
+    callback, where Python drops exceptions)."""
     from eabc.data.loaders import load_file  # noqa: PLC0415
 
     datasets = tmp_path / "cache" / "datasets"

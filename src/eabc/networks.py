@@ -41,10 +41,11 @@ def init_mlp(
     layer's weights and bias uniform in +-``output_bound`` (EDAC's initialisation, which ReBRAC's
     authors use: 0.1, and 1e-3 for an actor, 3e-3 for critics); None keeps PyTorch's default.
     """
-    shape = (tuple(int(size) for size in sizes), num_members, layer_norm, hidden_bias, output_bound)
+    sizes = tuple(int(size) for size in sizes)
+    static = (sizes, num_members, layer_norm, hidden_bias, output_bound)
     if isinstance(key, jax.core.Tracer):  # drawn inside a program being traced: part of it
-        return _draw_mlp(key, *shape)
-    return _draw_mlp_compiled(key, *shape)
+        return _draw_mlp(key, *static)
+    return _draw_mlp_compiled(key, *static)
 
 
 INIT_COMPILE_OPTIONS = {"xla_backend_optimization_level": 1, "xla_cpu_use_fusion_emitters": False}
