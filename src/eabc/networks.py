@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from eabc import programs
 from eabc.numpy_networks import LOG_STD_MAX, LOG_STD_MIN
 from eabc.numpy_networks import numpy_actor as numpy_actor  # re-exported: evaluation, SAC
 from eabc.numpy_networks import numpy_gaussian_sampler as numpy_gaussian_sampler
@@ -84,8 +85,8 @@ def _draw_mlp(key, sizes, num_members, layer_norm, hidden_bias, output_bound) ->
 # eagerly, each layer's weights and biases were a program of their own, a few tenths of a second
 # each to compile on a CPU; every algorithm's eager init at small sizes took 17.8 s of CPU, now
 # 10.3 (one Zen 4 core, no compile cache).
-_draw_mlp_compiled = jax.jit(
-    _draw_mlp, static_argnums=(1, 2, 3, 4, 5), compiler_options=INIT_COMPILE_OPTIONS
+_draw_mlp_compiled = programs.Program(
+    _draw_mlp, INIT_COMPILE_OPTIONS, static_argnums=(1, 2, 3, 4, 5)
 )
 
 

@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from eabc import programs
 from eabc.agents.common import Batch, BatchWithNextActions
 from eabc.agents.contract import CRITIC_METRICS
 from eabc.data.dataset import Dataset, DatasetError, Normalizer
@@ -194,15 +195,11 @@ def with_settings(config, values: dict):
 
 
 _PROGRAMS = {
-    fast: tuple(
-        jax.jit(
-            f,
-            static_argnames=_STATIC,
-            **({"compiler_options": FAST_COMPILE_OPTIONS} if fast else {}),
-        )
+    False: tuple(jax.jit(f, static_argnames=_STATIC) for f in (_chunk, _chunk_seeds, _chunk_runs)),
+    True: tuple(
+        programs.Program(f, FAST_COMPILE_OPTIONS, static_argnames=_STATIC)
         for f in (_chunk, _chunk_seeds, _chunk_runs)
-    )
-    for fast in (False, True)
+    ),
 }
 
 

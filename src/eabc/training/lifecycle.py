@@ -20,7 +20,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from eabc import networks, paths, ranges
+from eabc import networks, paths, programs, ranges
 from eabc.agents import Algorithm, get_algorithm
 from eabc.data import sources
 from eabc.data.dataset import Dataset, DatasetError, Normalizer, reference_scores_problem
@@ -368,8 +368,6 @@ def prepared(algorithm: Algorithm, dataset: Dataset, convention: str | None = No
 
 # One compiled program rather than dozens of eagerly compiled operations (and cacheable on disk),
 # built with the options of programs that run once (networks.INIT_COMPILE_OPTIONS).
-init_agent = jax.jit(
-    lambda init, *args: init(*args),
-    static_argnums=(0, 2, 3, 4),
-    compiler_options=networks.INIT_COMPILE_OPTIONS,
+init_agent = programs.Program(
+    lambda init, *args: init(*args), networks.INIT_COMPILE_OPTIONS, static_argnums=(0, 2, 3, 4)
 )
