@@ -76,7 +76,10 @@ def algorithm_names(source: str) -> list[tuple[int, str]]:
         ):
             if [t.string for t in tokens[max(i - 2, 0) : i]] in (["version", "("], ["files", "("]):
                 continue  # the package: metadata.version("eabc"), resources.files("eabc")
-            names = _names_in_text(tok.string, pattern)
+            text = tok.string
+            if tok.type == getattr(token, "FSTRING_MIDDLE", None) and tokens[i - 1].string == "}":
+                text = "}" + text  # Python 3.12 splits f"{side}_bc" where 3.11 kept one string
+            names = _names_in_text(text, pattern)
         elif tok.type == token.NAME:
             previous = tokens[i - 1].string if i else ""
             following = tokens[i + 1].string if i + 1 < len(tokens) else ""
