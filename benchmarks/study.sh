@@ -20,7 +20,8 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 WHEELS=(mujoco mujoco-core gymnasium farama-notifications glfw pyopengl pydantic pydantic-core
-  annotated-types typing-inspection tyro docstring-parser typeguard tensorboardx)
+  annotated-types typing-inspection tyro docstring-parser typeguard tensorboardx
+  typing-extensions)  # the image has one, maybe older than pydantic's >= 4.16: carried in front
 
 if [ "${1:-}" = wheels ]; then
   rm -rf benchmarks/wheels
