@@ -54,7 +54,7 @@ INIT_COMPILE_OPTIONS = {"xla_backend_optimization_level": 1, "xla_cpu_use_fusion
 fusion emitter give the same parameters bit for bit as XLA's defaults (``tests/test_networks.py``,
 ``tests/training/test_training.py``), compiled in about half the time at O1 and in 38% less
 again with the older emitter (the trainer's ``lifecycle.init_agent`` for all 21 algorithms: 40.8
--> 25.2 s of CPU)."""
+-> 25.2 s of CPU). A jaxlib that lacks one of them compiles without it (:mod:`eabc.programs`)."""
 
 
 def _draw_mlp(key, sizes, num_members, layer_norm, hidden_bias, output_bound) -> Params:
