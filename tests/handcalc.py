@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
 from eabc.agents.common import Batch
-from eabc.programs import known_options
+from eabc.programs import Program
 from eabc.training.chunks import FAST_COMPILE_OPTIONS
 
 OBS, ACT, B = 3, 2, 7
@@ -40,9 +39,7 @@ def quick_jit(update):
     its ``lax.cond`` again on every call: SAC's first eager step took 7.7 s of CPU, EABC's every
     step 1 s; compiled this way, 1.2-2 s once per config, and the tests check the update compiled,
     as training runs it (inside its scan)."""
-    return jax.jit(
-        update, static_argnums=(3, 4), compiler_options=known_options(FAST_COMPILE_OPTIONS)
-    )
+    return Program(update, FAST_COMPILE_OPTIONS, static_argnums=(3, 4))
 
 
 def make_batch(seed: int = 0) -> Batch:

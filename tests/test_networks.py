@@ -14,7 +14,7 @@ import pytest
 from eabc import networks
 from eabc.agents import eabc
 from eabc.agents.common import Batch
-from eabc.programs import known_options
+from eabc.programs import Program
 
 RTOL = 1e-5
 
@@ -295,7 +295,7 @@ def test_an_eagerly_drawn_network_is_the_one_drawn_inside_a_program(
     eager = draw(keys[0])
     traced = jax.jit(draw)(keys[0])
     # Under vmap in a program of its own, built quickly (the default build is the line above).
-    vmap = jax.jit(jax.vmap(draw), compiler_options=known_options(networks.INIT_COMPILE_OPTIONS))
+    vmap = Program(jax.vmap(draw), networks.INIT_COMPILE_OPTIONS)
     vmapped = jax.tree.map(lambda x: x[0], vmap(keys))
     assert set(eager) == set(traced) == set(vmapped)
     for name in eager:

@@ -13,19 +13,15 @@ from handcalc import ACT, OBS, B, member, np_mlp, np_q
 from learning import MARGIN, late_gain
 
 from eabc.agents import bear, get_algorithm, uwac
-from eabc.programs import known_options
+from eabc.programs import Program
 from eabc.training.chunks import FAST_COMPILE_OPTIONS
 
 SMALL = {"hidden_dims": (8, 8), "vae_hidden_dims": (8, 8)}
 UPDATE = bear.BEARConfig(**SMALL, warmup_steps=0)
 """The settings of the tests of BEAR's whole step, so that its update compiles once for them."""
 # One step each: compiled quickly (XLA O0), since a test runs them once or twice.
-bear_update = jax.jit(
-    bear.update, static_argnums=(3, 4), compiler_options=known_options(FAST_COMPILE_OPTIONS)
-)
-uwac_update = jax.jit(
-    uwac.update, static_argnums=(3, 4), compiler_options=known_options(FAST_COMPILE_OPTIONS)
-)
+bear_update = Program(bear.update, FAST_COMPILE_OPTIONS, static_argnums=(3, 4))
+uwac_update = Program(uwac.update, FAST_COMPILE_OPTIONS, static_argnums=(3, 4))
 
 
 def as64(*arrays):

@@ -18,7 +18,7 @@ from handcalc import ACT, OBS, make_batch
 from eabc import ranges
 from eabc.agents import bc_weights, eabc, get_algorithm, rebrac, wpc
 from eabc.agents.common import Batch, BatchWithNextActions
-from eabc.programs import known_options
+from eabc.programs import Program
 from eabc.training import chunks, lifecycle, trainer
 from eabc.training.chunks import FAST_COMPILE_OPTIONS, summarize_metrics
 from eabc.training.config import TrainConfig
@@ -132,11 +132,7 @@ def reference_train(module, state, key, data, config, batch_size, steps, start=0
                     max_action=MAX_ACTION):  # fmt: skip
     """Steps one at a time, the actor's turn decided in Python from the step count, with the
     chunks' sampling (three keys per step: the carry, the batch's indices, the update)."""
-    step = jax.jit(
-        REFERENCES[module],
-        static_argnums=(3, 4, 5),
-        compiler_options=known_options(FAST_COMPILE_OPTIONS),
-    )
+    step = Program(REFERENCES[module], FAST_COMPILE_OPTIONS, static_argnums=(3, 4, 5))
     size = data.rewards.shape[0]
     rows = []
     for t in range(start + 1, start + steps + 1):
