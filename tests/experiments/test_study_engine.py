@@ -17,16 +17,18 @@ from packaging.requirements import Requirement
 from eabc import cli
 from eabc.experiments import archive_merge, job_process, planning, study
 from eabc.experiments.spec import expand
+from eabc.training import trainer
 
 ROOT = Path(__file__).resolve().parents[2]
 SCRIPT = ROOT / "benchmarks" / "study.sh"
 
 
 def test_the_device_script_smoke_run_streams_finished_runs_that_report_reads(tmp_path):
-    """The very script a lent GPU runs, at toy sizes on this CPU: the queue's first two groups
-    (two seeds each; each group one program over the slices' three hopper datasets) train, and
-    OUT holds exactly the study's files and the width table, its runs done and read back by
-    `eabc report --include`; a second study given --include OUT trains nothing."""
+    """The very script a lent GPU runs, at toy sizes on this CPU: the first slice's first two
+    groups (TD3+BC and EABC on hopper-medium) and the second slice's first (TD3+BC, one program
+    over hopper-medium-replay and hopper-random), two seeds each, train in slice order, and OUT
+    holds exactly the study's files and the width table, its runs done and read back by `eabc
+    report --include`; a second study given --include OUT trains nothing."""
     out = tmp_path / "out"
     env = {**os.environ, "OUT": str(out), "EABC_FAST_COMPILE": "1", "TMPDIR": str(tmp_path)}
     done = subprocess.run(
@@ -37,18 +39,21 @@ def test_the_device_script_smoke_run_streams_finished_runs_that_report_reads(tmp
     width = (out / "width.md").read_text()  # measured after the study, in its own seconds
     assert "| td3bc | 1 |" in width and "| td3bc | 2 |" in width, width
     runs, evaluations = archive_merge.read_archive(out)
-    hoppers = ("hopper-medium", "hopper-medium-replay", "hopper-random")
+    trained = [("hopper-medium", "td3bc"), ("hopper-medium", "eabc"),
+               ("hopper-medium-replay", "td3bc"), ("hopper-random", "td3bc")]  # fmt: skip
     assert sorted(runs["run_id"]) == sorted(
-        f"runs/{data}__{algo}__seed{seed}"
-        for algo in ("eabc", "td3bc")
-        for data in hoppers
-        for seed in (0, 1)
+        f"runs/{data}__{algo}__seed{seed}" for data, algo in trained for seed in (0, 1)
     )
     assert (runs["status"] == "done").all() and (runs["steps"] == 40).all()
-    assert len(evaluations) == 12 * 2  # every 20 of 40 steps
+    assert len(evaluations) == 8 * 2  # every 20 of 40 steps
     logs = pd.read_csv(out / "logs.csv")
-    assert list(logs.columns[:2]) == ["run_id", "step"] and len(logs) == 12 * 2
-    assert "training hopper-medium__td3bc+2 (6 runs)" in (out / "study.log").read_text()
+    assert list(logs.columns[:2]) == ["run_id", "step"] and len(logs) == 8 * 2
+    started = re.findall(r"training (\S+ \(\d+ runs\))", (out / "study.log").read_text())
+    assert started == [
+        "hopper-medium__td3bc (2 runs)",
+        "hopper-medium__eabc (2 runs)",
+        "hopper-medium-replay__td3bc+1 (4 runs)",
+    ]
     again = tmp_path / "again"
     spec = sorted((ROOT / "docs" / "results" / "study-1m").glob("[0-9]*.yaml"))[0]
     argv = ["study", str(spec), "--smoke", "--out", str(again), "--root", str(tmp_path / "r2")]
@@ -70,14 +75,14 @@ def test_a_group_starts_only_if_its_scaled_estimate_ends_before_the_deadline(tmp
     monkeypatch.setattr(planning, "estimate_seconds", lambda run, done=0: estimates[run.dataset])
     trained = []
 
-    def execute(job, root, eval_workers=0):
+    def execute(job, root, eval_workers=0, deadline=None):
         trained.append(job[0]["dataset"])
         time.sleep(0.2)
 
     monkeypatch.setattr(job_process, "execute", execute)
     monkeypatch.setattr(study, "start_datasets", lambda *a: ({}, None))
     report = study.run_study(
-        _queue(tmp_path), tmp_path / "root", tmp_path / "out", time.time() + 30, echo=lambda _: None
+        [_queue(tmp_path)], tmp_path / "root", tmp_path / "out", time.time() + 30, echo=print
     )
     assert trained == ["hopper-medium", "halfcheetah-medium"]
     assert report["skipped"] == ["walker2d-medium__td3bc__seed0 (1 run)"]
@@ -86,20 +91,62 @@ def test_a_group_starts_only_if_its_scaled_estimate_ends_before_the_deadline(tmp
 
 
 def test_a_failed_group_is_named_and_the_queue_goes_on(tmp_path, monkeypatch):
-    def execute(job, root, eval_workers=0):
+    def execute(job, root, eval_workers=0, deadline=None):
         if job[0]["dataset"] == "walker2d-medium":
             raise ValueError("no memory for it")
 
     monkeypatch.setattr(job_process, "execute", execute)
     monkeypatch.setattr(study, "start_datasets", lambda *a: ({}, None))
     report = study.run_study(
-        _queue(tmp_path), tmp_path / "root", tmp_path / "out", echo=lambda _: None
+        [_queue(tmp_path)], tmp_path / "root", tmp_path / "out", echo=lambda _: None
     )
     assert report["failed"] == {"walker2d-medium__td3bc__seed0 (1 run)": "no memory for it"}
     assert report["finished"] == [
         "hopper-medium__td3bc__seed0",
         "halfcheetah-medium__td3bc__seed0",
     ]
+
+
+def test_a_group_its_first_chunks_show_too_slow_starts_again_narrower(tmp_path, monkeypatch):
+    """Five seeds in one program would end past the deadline at the speed its first chunks
+    showed: the first runs that fit the time left (two) train again as their own program, then
+    the other three are tried, stopped, narrowed to one, and the last two fit; the slices keep
+    their order (the second slice's group trains last)."""
+    monkeypatch.setattr(planning, "estimate_seconds", lambda run, done=0: 0.01)
+    monkeypatch.setattr(study, "start_datasets", lambda *a: ({}, None))
+    widths = []
+
+    def execute(job, root, eval_workers=0, deadline=None):
+        widths.append((job[0]["dataset"], len(job)))
+        if len(job) > 2:  # the time left holds 2.5 runs' seed-steps at five runs' speed, 1.5 at 3
+            seconds = deadline - time.time()
+            worth = {5: 2.5, 3: 1.5}[len(job)]
+            rate = worth * trainer.DEADLINE_MARGIN * 1_000_000 / (seconds - 1.0) / len(job)
+            raise trainer.PastDeadline(len(job), 3_000, 1_000_000, rate, 1.0, 100.0)
+
+    monkeypatch.setattr(job_process, "execute", execute)
+    seeds = {"algos": ["td3bc"], "seeds": [0, 1, 2, 3, 4], "steps": 1_000_000}
+    slices = [expand({"datasets": ["hopper-medium"], **seeds}),
+              expand({"datasets": ["walker2d-medium"], **{**seeds, "seeds": [0]}})]  # fmt: skip
+    report = study.run_study(
+        slices, tmp_path / "root", tmp_path / "out", time.time() + 30, echo=lambda _: None
+    )
+    assert widths == [("hopper-medium", w) for w in (5, 2, 3, 1, 2)] + [("walker2d-medium", 1)]
+    assert report["narrowed"] == ["hopper-medium__td3bc (5 runs)", "hopper-medium__td3bc (3 runs)"]
+    assert report["finished"] == [f"hopper-medium__td3bc__seed{s}" for s in (0, 1, 2, 3, 4)] + [
+        "walker2d-medium__td3bc__seed0"
+    ]
+    log = (tmp_path / "out" / "study.log").read_text()
+    assert "stopped: hopper-medium__td3bc (5 runs): 5 runs at" in log
+    assert "again with its first 2" in log and "again with its first 1" in log
+
+
+def test_a_stopped_group_is_narrowed_to_what_fits(tmp_path):
+    stopped = trainer.PastDeadline(10, 5_000, 1_000_000, 2_000.0, 20.0, 300.0)  # 20K seed-steps/s
+    assert study.fitting(stopped, 400.0) == 7  # 380 s x 20K / 1.05M seed-steps per run: 7.2
+    assert study.fitting(stopped, 1_000.0) == 9  # 18.7, but never as many as it had
+    assert study.fitting(stopped, 60.0) == 0  # 40 s: not one run's million steps
+    assert study.fitting(stopped, 10.0) == 0  # less time than compiling again
 
 
 def test_out_must_be_empty_or_a_studys(tmp_path):

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import time
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -182,3 +183,37 @@ def test_sweep_groups_put_one_environment_and_traced_values_in_one_program():
     assert len(groups(runs)) == 2 * 3 + 2 * 3 + 3  # eabc, rebrac: 2 K x 3 shapes; bc: 3 shapes
     job = found[("eabc", ("hopper-medium", "hopper-random"), 8)]
     assert job_name(job) == f"{job[0].group_id}+3" and job_name(job[:1]) == job[0].run_id
+
+
+def test_a_group_past_its_deadline_stops_after_its_first_chunks_and_resumes_as_if_killed(
+    tmp_path, pendulum_dataset, monkeypatch
+):
+    """With a deadline the first chunks time the program; where the rest would end after it,
+    training stops there (:class:`trainer.PastDeadline`: the width, the step, the speed), the
+    runs' locks are free, and resumed without a deadline the runs end with the same parameters as
+    the same group never stopped."""
+    monkeypatch.setattr(trainer, "PROBE_CHUNKS", 2)
+    monkeypatch.setattr(trainer, "PROBE_SECONDS", 0.0)
+    path = str(tmp_path / "swing.npz")
+    save_npz(_cut(pendulum_dataset, 5_000, "swing"), path)
+    train = tuple(sorted({**TRAIN, "steps": 600, "checkpoint_interval": 200}.items()))
+    agent = tuple(sorted({"hidden_dims": (32, 32)}.items()))
+    job = [RunSpec(path, "td3bc", seed, agent, train).to_json() for seed in (0, 1)]
+    with pytest.raises(trainer.PastDeadline) as stopped:
+        job_process.execute(job, str(tmp_path / "stopped"), deadline=time.time() + 1e-3)
+    error = stopped.value
+    assert (error.width, error.step, error.steps) == (2, 300, 600)  # timed: steps 100-300
+    assert error.steps_per_s > 0 and error.compile_s >= 0 and error.late_s > 0
+    assert "2 runs at" in str(error) and "after the deadline (step 300 of 600)" in str(error)
+    resumed = job_process.execute(job, str(tmp_path / "stopped"))  # the locks were released
+    never = job_process.execute(job, str(tmp_path / "never"), deadline=time.time() + 3600)
+    assert [s["final_score"] for s in resumed] == [s["final_score"] for s in never]
+    for spec in job:
+        run_id = RunSpec.from_json(spec).run_id
+        got, expected = (
+            lifecycle.resume(tmp_path / root / "runs" / run_id, lock=False)
+            for root in ("stopped", "never")
+        )
+        assert got.step == expected.step == 600
+        for a, b in zip(_leaves(got.state["agent"]), _leaves(expected.state["agent"]), strict=True):
+            np.testing.assert_array_equal(a, b)

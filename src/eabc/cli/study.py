@@ -17,17 +17,21 @@ SMOKE = {"steps": 40, "log_interval": 20, "eval_interval": 20, "checkpoint_inter
          "eval_episodes": 1}  # fmt: skip
 """What ``--smoke`` shortens every run to (with datasets of :data:`SMOKE_DATASET_SIZE`)."""
 SMOKE_DATASET_SIZE = 2_000
-SMOKE_GROUPS, SMOKE_SEEDS = 2, 2
+SMOKE_GROUPS, SMOKE_SEEDS = (2, 1), 2
+"""``--smoke`` trains the first two groups of the first spec and the first of the second (or
+fewer, where the specs are fewer), each with two seeds."""
 
 
 @dataclasses.dataclass(frozen=True)
 class Study:
     """Train a queue of runs on one machine within a time budget, streaming what finishes.
 
-    For a borrowed accelerator: the runs that differ only in their seed train as one vectorised
-    program, one program at a time (the GPU's memory is not pre-allocated); the queue's datasets
-    are made by background processes while the first groups train; a group starts only if its
-    estimate (scaled by how long the groups so far took) ends before --within; after each group,
+    For a borrowed accelerator: the runs of a spec that share their networks' shapes (seeds,
+    datasets of one environment) train as one vectorised program, one program at a time (the
+    GPU's memory is not pre-allocated); the queue's datasets are made by background processes
+    while the first groups train; a group starts only if its estimate (scaled by how long the
+    groups so far took) ends before --within, and one whose first chunks show it would end later
+    stops and starts again with as many of its runs as fit the time left; after each group,
     every finished run (log rows, evaluations, summary, provenance; never checkpoints) is written
     to --out in five files. `eabc report ROOT --include OUT` reports them; a later study given
     `--include OUT` skips them.
@@ -38,8 +42,9 @@ class Study:
         tyro.conf.Positional,
         tyro.conf.arg(metavar="SPEC", help_behavior_hint="(one or more)"),
     ]
-    """Sweep specs (YAML: datasets, algos or variants, seeds, steps, train): the queue, in their
-    order and each spec's own (dataset by dataset, a group of seeds per algorithm or variant)."""
+    """Sweep specs (YAML: datasets, algos or variants, seeds, steps, train): the queue's slices,
+    in their order; within one, the spec's own order, and the runs that can share one program
+    (seeds, datasets of one environment) as one group."""
     out: str = "study-out"
     """Where the finished runs' results go (runs.csv, evaluations.csv, logs.csv, runs.jsonl,
     study.log); an empty directory or one a study wrote."""
@@ -59,8 +64,8 @@ class Study:
     steps: Steps | None = None
     """Gradient steps per run (default the spec's)."""
     smoke: bool = False
-    """The same code path at toy sizes: the queue's first two groups with two seeds each, 40
-    steps per run, one evaluation episode every 20 steps, datasets of 2,000 transitions in a
+    """The same code path at toy sizes: the first slice's first two groups and the second's first,
+    two seeds each, 40 steps per run, one evaluation episode every 20 steps, datasets of 2,000 transitions in a
     temporary cache; for a check on any machine."""
 
 
@@ -77,7 +82,7 @@ def run_study(cmd: Study) -> None:
             "eabc study docs/results/study-1m/1-hopper-halfcheetah.yaml --within 45m"
         )
     out = study.check_out(cmd.out)
-    size, runs = None, []
+    size, slices = None, []
     cache = tempfile.mkdtemp(prefix="eabc-study-smoke-") if cmd.smoke else None
     for path in cmd.specs:
         spec = load_spec(path)
@@ -88,22 +93,26 @@ def run_study(cmd: Study) -> None:
             train = {k: v for k, v in SMOKE.items() if k != "steps"}
             spec["train"] = {**(spec.get("train") or {}), **train, "cache_dir": cache}
             size = SMOKE_DATASET_SIZE
-        runs += expand(spec)
-    if cmd.smoke:  # the first groups, two seeds each: every stage of the path, in a minute
-        seeds = sorted({r.seed for r in runs})[:SMOKE_SEEDS]
-        runs = [r for group in groups(runs)[:SMOKE_GROUPS] for r in group if r.seed in seeds]
+        slices.append(expand(spec))
+    if cmd.smoke:  # a few groups, two seeds each: every stage of the path, in a minute
+        seeds = sorted({r.seed for runs in slices for r in runs})[:SMOKE_SEEDS]
+        slices = [
+            [r for group in groups(runs)[:count] for r in group if r.seed in seeds]
+            for runs, count in zip(slices, SMOKE_GROUPS)
+        ]
     if cmd.include:
-        done = run_status.archived_done(runs, [archive_merge.read_archive(d) for d in cmd.include])
+        archives = [archive_merge.read_archive(d) for d in cmd.include]
+        done = run_status.archived_done([r for runs in slices for r in runs], archives)
         if done:
             print(f"{len(done)} runs done in {', '.join(cmd.include)}: not trained again")
-        runs = [r for r in runs if r.run_id not in done]
+        slices = [[r for r in runs if r.run_id not in done] for runs in slices]
     deadline = None if cmd.within is None else time.time() + planning.parse_duration(cmd.within)
     workers = cmd.data_workers or max(1, (os.cpu_count() or 2) - 1)
     evaluators = cmd.eval_workers
     if evaluators is None:
         evaluators = max(1, (os.cpu_count() or 2) - 1)
     report = study.run_study(
-        runs, paths.expand(cmd.root), out, deadline, workers, size, eval_workers=evaluators
+        slices, paths.expand(cmd.root), out, deadline, workers, size, eval_workers=evaluators
     )
     if report["failed"]:
         raise SystemExit(f"error: {len(report['failed'])} group(s) failed; see {out / 'study.log'}")

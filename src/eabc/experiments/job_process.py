@@ -39,11 +39,14 @@ def prepare_datasets(runs: list[RunSpec], log=lambda line: print(line, flush=Tru
             generate.make(config.dataset, path)
 
 
-def execute(job: list[dict], root: str, eval_workers: Any = 0) -> list[dict]:
+def execute(
+    job: list[dict], root: str, eval_workers: Any = 0, deadline: float | None = None
+) -> list[dict]:
     """Run one job in this process: start or resume each run, then train them as one program
     (:func:`eabc.training.trainer.train_runs`); ``eval_workers``: evaluation processes, or an
     evaluation pool shared with other jobs (``eabc.training.eval_pool``; 0 evaluates in this
-    process)."""
+    process). With a ``deadline`` (a ``time.time()``) the job stops with
+    :class:`~eabc.training.trainer.PastDeadline` once its first chunks show it would end later."""
     root_path = Path(root)
     specs = [RunSpec.from_json(j) for j in job]
     first = specs[0].train_config()
@@ -71,9 +74,9 @@ def execute(job: list[dict], root: str, eval_workers: Any = 0) -> list[dict]:
     # Progress as lines in the job's log (ROOT/logs/NAME.log): its start with the estimate, one
     # a minute, its end.
     summaries = (
-        trainer.train_runs(runs, progress=True, eval_workers=eval_workers)
+        trainer.train_runs(runs, progress=True, eval_workers=eval_workers, deadline=deadline)
         if len(runs) > 1
-        else [trainer.train(runs[0], progress=True, eval_workers=eval_workers)]
+        else [trainer.train(runs[0], progress=True, eval_workers=eval_workers, deadline=deadline)]
     )
     return summaries
 

@@ -1,13 +1,17 @@
 """The study engine: a queue of runs trained against a time budget on one accelerator.
 
 A lent GPU machine gives minutes, not hours, and returns only a few small files. So the queue is
-trained in one process: each group of runs that share their networks' shapes (seeds, datasets of
-one environment, values of the algorithm's traced settings: :func:`eabc.experiments.spec.groups`)
-is one compiled program (``vmap``-ped, :func:`eabc.training.trainer.train_runs`), the groups one
-after another, so one program holds the accelerator's memory at a time (XLA's pre-allocation is
-turned off by the command). The built-in datasets the queue names are made by a pool of processes while the first
+trained in one process, slice after slice (a slice is one sweep spec): each group of a slice's
+runs that share their networks' shapes (seeds, datasets of one environment, values of the
+algorithm's traced settings: :func:`eabc.experiments.spec.groups`) is one compiled program
+(``vmap``-ped, :func:`eabc.training.trainer.train_runs`), the groups one after another, so one
+program holds the accelerator's memory at a time (XLA's pre-allocation is turned off by the
+command). The built-in datasets the queue names are made by a pool of processes while the first
 groups train. A group starts only if its estimate ends before the deadline; the estimates are the
 contract's reference-host hints scaled by how long the groups trained so far took against theirs.
+Once started, a group's first chunks measure its real speed: if the rest would end after the
+deadline it stops there, and its first runs, as many as that speed says fit the time left, start
+again as a narrower program (:func:`fitting`); the others wait for their turn behind them.
 After every finished group, everything the queue has finished is written to ``OUT`` in
 :data:`OUT_FILES` (no checkpoints), each file replaced whole, so a command stopped at its limit
 still returns all it finished. ``eabc report --include OUT`` reads ``OUT`` back beside other
@@ -29,8 +33,9 @@ from eabc import paths
 from eabc.data import generate, sources
 from eabc.experiments import job_process, planning, results, run_status
 from eabc.experiments.spec import RunSpec, job_name
-from eabc.training import eval_pool
+from eabc.training import eval_pool, trainer
 from eabc.training.checkpoint import atomic_write
+from eabc.training.trainer import PastDeadline
 
 OUT_FILES = (
     "runs.csv",  # one row per finished run, as `eabc report` writes it (read back by --include)
@@ -130,8 +135,19 @@ def _scale(took: dict[str, list[tuple[float, float]]], algo: str) -> float:
     return sum(a for a, _ in pairs) / sum(e for _, e in pairs) if pairs else 1.0
 
 
+def fitting(stopped: PastDeadline, seconds_left: float) -> int:
+    """How many of a stopped group's runs to train again in ``seconds_left``: as many as end in
+    time (after compiling again) at the seed-steps per second its first chunks reached, fewer than
+    it had; 0 where not even one does. A narrower program makes fewer seed-steps per second on an
+    accelerator, so a first guess can be stopped again, and is narrowed again."""
+    seed_steps_per_s = stopped.steps_per_s * stopped.width
+    time_for_steps = seconds_left - stopped.compile_s
+    fit = int(time_for_steps * seed_steps_per_s / (trainer.DEADLINE_MARGIN * stopped.steps))
+    return max(0, min(fit, stopped.width - 1))
+
+
 def run_study(
-    runs: list[RunSpec],
+    slices: list[list[RunSpec]],
     root: Path,
     out: Path,
     deadline: float | None = None,
@@ -140,24 +156,31 @@ def run_study(
     echo: Callable[[str], None] = print,
     eval_workers: int = 0,
 ) -> dict[str, Any]:
-    """Train ``runs`` group by group in this process until the queue or the time is spent;
+    """Train ``slices`` (lists of runs: the queue, in order), group by group in this process,
+    until the queue or the time is spent;
     ``eval_workers`` processes evaluate every group's runs while training goes on (one pool for
     the whole queue; 0: in this process, between chunks).
 
     Returns what happened: ``finished`` (run ids), ``skipped`` (groups not started because
-    their estimate ended past ``deadline``), ``failed`` (group label -> error) and ``exported``
-    (finished runs in ``out``, this study's and earlier ones' in the same root)."""
+    their estimate ended past ``deadline``, or stopped because their first chunks showed that
+    not even one of their runs would end before it), ``narrowed`` (groups stopped after their
+    first chunks and trained again with fewer runs), ``failed`` (group label -> error) and
+    ``exported`` (finished runs in ``out``, this study's and earlier ones' in the same root)."""
     out.mkdir(parents=True, exist_ok=True)
     root.mkdir(parents=True, exist_ok=True)
     log = StudyLog(out, echo)
-    job_list = planning.jobs(runs, root, "vmap")
-    log(f"{len(runs)} runs in {len(job_list)} groups to train in {root}")
+    job_list = [job for runs in slices for job in planning.jobs(runs, root, "vmap")]
+    count = sum(len(job) for job in job_list)
+    log(f"{count} runs in {len(job_list)} groups to train in {root}")
     futures, pool = start_datasets(job_list, data_workers, dataset_size, log)
     evaluators = eval_pool.EvaluationPool(eval_workers) if eval_workers else 0
     took: dict[str, list[tuple[float, float]]] = {}  # algo -> (actual, estimated) seconds
-    report: dict[str, Any] = {"finished": [], "skipped": [], "failed": {}, "exported": 0}
+    report: dict[str, Any] = {
+        "finished": [], "skipped": [], "narrowed": [], "failed": {}, "exported": 0
+    }  # fmt: skip
     try:
-        for job in job_list:
+        while job_list:
+            job = job_list.pop(0)
             label = f"{job_name(job)} ({len(job)} run{'s' * (len(job) > 1)})"
             base = max(planning.estimate_seconds(r, run_status.status(r, root)[1]) for r in job)
             guess = base * _scale(took, job[0].algo)
@@ -172,8 +195,18 @@ def run_study(
             started = time.time()
             try:
                 job_process.execute(
-                    [job_process.absolute_spec(r) for r in job], str(root), evaluators
+                    [job_process.absolute_spec(r) for r in job], str(root), evaluators, deadline
                 )
+            except PastDeadline as stopped:
+                fit = fitting(stopped, deadline - time.time())
+                if fit:
+                    log(f"stopped: {label}: {stopped}; again with its first {fit}")
+                    report["narrowed"].append(label)
+                    job_list[:0] = [job[:fit], job[fit:]]
+                else:
+                    log(f"stopped: {label}: {stopped}; not even one run would end in time")
+                    report["skipped"].append(label)
+                continue
             except Exception as error:  # one failed group does not stop the queue
                 log(f"failed: {label}: {error}")
                 report["failed"][label] = str(error)
@@ -191,7 +224,7 @@ def run_study(
     report["exported"] = export(root, out)
     log(
         f"finished {len(report['finished'])} runs, skipped {len(report['skipped'])} groups, "
-        f"{len(report['failed'])} failed; {report['exported']} runs in {out}"
+        f"narrowed {len(report['narrowed'])}, {len(report['failed'])} failed; {report['exported']} runs in {out}"
     )
     return report
 

@@ -43,6 +43,30 @@ from eabc.training.health import (
 from eabc.training.lifecycle import Run, prepared
 from eabc.training.logger import CURVE, RunLogger, plot_curve
 
+PROBE_CHUNKS, PROBE_SECONDS = 3, 5.0
+"""With a deadline, how long a program's speed is measured before the end is predicted: this many
+chunks after its first (which compiles) and at least these seconds."""
+DEADLINE_MARGIN = 1.05
+"""A prediction's allowance for what the first chunks do not show (evaluations, checkpoints)."""
+
+
+class PastDeadline(RuntimeError):
+    """Training stopped early: at the speed measured in its first chunks, it would end after its
+    deadline. Its runs stay resumable (from their last checkpoint, or from step 0)."""
+
+    def __init__(self, width: int, step: int, steps: int, steps_per_s: float, compile_s: float,
+                 late_s: float):  # fmt: skip
+        self.width, self.step, self.steps = width, step, steps
+        self.steps_per_s = steps_per_s
+        """Every run's steps per second: the program's, at this many runs."""
+        self.compile_s = compile_s
+        """What the first chunk took beyond a chunk at that speed: the program's compilation."""
+        self.late_s = late_s
+        super().__init__(
+            f"{width} run{'s' * (width > 1)} at {steps_per_s:,.0f} steps/s would end about "
+            f"{late_s:,.0f} s after the deadline (step {step:,} of {steps:,})"
+        )
+
 
 def estimate_seconds(
     algorithm,
@@ -101,14 +125,20 @@ def evaluation_task(run: Run) -> eval_pool.Task:
 
 
 def train(
-    run: Run, progress: bool = True, eval_workers: int | eval_pool.EvaluationPool = 0
+    run: Run,
+    progress: bool = True,
+    eval_workers: int | eval_pool.EvaluationPool = 0,
+    deadline: float | None = None,
 ) -> dict[str, Any]:
     """Train ``run`` to ``config.steps`` from wherever it is; returns the summary."""
-    return train_runs([run], progress, eval_workers)[0]
+    return train_runs([run], progress, eval_workers, deadline)[0]
 
 
 def train_runs(
-    runs: list[Run], progress: bool = True, eval_workers: int | eval_pool.EvaluationPool = 0
+    runs: list[Run],
+    progress: bool = True,
+    eval_workers: int | eval_pool.EvaluationPool = 0,
+    deadline: float | None = None,
 ) -> list[dict[str, Any]]:
     """Train runs that share their networks' shapes together, as one program over a run axis.
 
@@ -124,6 +154,10 @@ def train_runs(
     ``eval_workers`` > 0 evaluates in that many processes while training goes on
     (:mod:`eabc.training.eval_pool`), or in a given pool (one pool for many calls); the files
     written are the same as with 0, which evaluates in this process between chunks.
+
+    ``deadline`` (a ``time.time()``): once the first chunks have shown the program's speed
+    (:data:`PROBE_CHUNKS`, :data:`PROBE_SECONDS`), raises :class:`PastDeadline` if the rest would
+    end after it; the runs are then as if killed there, and resume from their last checkpoint.
     """
     own = None
     if isinstance(eval_workers, eval_pool.EvaluationPool):
@@ -134,7 +168,7 @@ def train_runs(
     try:
         for run in runs:  # who trains it from here, where, with what code (provenance.json)
             provenance.record(run.run_dir, run.step)
-        summaries = _train_together(runs, progress, pool)
+        summaries = _train_together(runs, progress, pool, deadline)
         finished = True
         return summaries
     finally:
@@ -146,12 +180,15 @@ def train_runs(
 
 
 def _train_together(
-    runs: list[Run], progress: bool, pool: eval_pool.EvaluationPool | None = None
+    runs: list[Run],
+    progress: bool,
+    pool: eval_pool.EvaluationPool | None = None,
+    deadline: float | None = None,
 ) -> list[dict[str, Any]]:
     first = runs[0]
     values = one_program_values(runs)
     if len({run.step for run in runs}) > 1:
-        return [_train_together([run], progress, pool)[0] for run in runs]
+        return [_train_together([run], progress, pool, deadline)[0] for run in runs]
     config = first.config
     slots: dict[tuple, int] = {}  # each dataset (with its normaliser) once on the device
     datas, rewards, which, q_ranges = [], [], [], []
@@ -190,10 +227,13 @@ def _train_together(
         estimate=_estimate(first) if progress and first.step < config.steps else None,
         dynamic_ncols=True,
     )
+    probe = _Probe(deadline, len(runs), config.steps) if deadline is not None else None
     try:
         while first.step < config.steps:
             length = min(config.log_interval, config.steps - first.step)
             started = time.perf_counter()
+            if probe is not None:
+                probe.check(first.step, length)
             if len(runs) == 1:
                 agent, key, metrics = train_chunk(
                     first.state["agent"],
@@ -259,7 +299,7 @@ def _train_together(
     healthy = [run for run in runs if run.diverged_step is None]
     rest = {}  # the other seeds of a group, when one of them stopped on NaN/inf
     if len(healthy) < len(runs) and healthy and healthy[0].step < config.steps:
-        rest = dict(zip(map(id, healthy), _train_together(healthy, progress, pool)))
+        rest = dict(zip(map(id, healthy), _train_together(healthy, progress, pool, deadline)))
     summaries = []
     for run, logger, q_range in zip(runs, loggers, q_ranges):
         if id(run) in rest:
@@ -272,6 +312,32 @@ def _train_together(
         summaries[-1]["diverged_step"] = run.diverged_step
         checkpoint.save_json(run.run_dir / SUMMARY, summaries[-1])
     return summaries
+
+
+class _Probe:
+    """Times a program's first chunks and, once they show its speed, whether the rest of its steps
+    ends before ``deadline``; asked once, before each chunk."""
+
+    def __init__(self, deadline: float, width: int, steps: int):
+        self.deadline, self.width, self.steps = deadline, width, steps
+        self.chunks, self.start, self.origin, self.last = 0, time.time(), None, None
+
+    def check(self, step: int, length: int) -> None:
+        now = time.time()
+        if self.chunks == 1:  # the first chunk, compiled and run: speed is timed from here
+            self.origin, self.first_s, self.first_length = (step, now), now - self.start, length
+        self.chunks += 1
+        if self.origin is None or self.last is not None:
+            return
+        done, seconds = step - self.origin[0], now - self.origin[1]
+        if self.chunks <= PROBE_CHUNKS + 1 or seconds < PROBE_SECONDS:
+            return
+        self.last = now  # decided once
+        rate = done / max(seconds, 1e-9)
+        end = now + DEADLINE_MARGIN * (self.steps - step) / rate
+        if end > self.deadline:
+            compile_s = max(0.0, self.first_s - self.first_length / rate)
+            raise PastDeadline(self.width, step, self.steps, rate, compile_s, end - self.deadline)
 
 
 def one_program_values(runs: list[Run]) -> dict[str, list[float]]:
