@@ -141,6 +141,30 @@ def test_a_group_its_first_chunks_show_too_slow_starts_again_narrower(tmp_path, 
     assert "again with its first 2" in log and "again with its first 1" in log
 
 
+def test_a_dry_run_lists_each_slices_groups_in_order_and_touches_nothing(tmp_path, capsys):
+    specs = []
+    for name, spec in (("1-a.yaml", "datasets: [hopper-medium, walker2d-medium]\nalgos: [td3bc, eabc]"),
+                       ("2-b.yaml", "datasets: [hopper-random, hopper-medium-replay]\nalgos: [td3bc]")):  # fmt: skip
+        specs.append(tmp_path / name)
+        specs[-1].write_text(f"{spec}\nseeds: [0, 1, 2]\nsteps: 1000\n")
+    out, root = tmp_path / "out", tmp_path / "root"
+    cli.main(["study", *map(str, specs), "--dry-run", "--out", str(out), "--root", str(root)])
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == f"{specs[0]}: 12 runs to train, 4 groups"
+    assert [line.split(":")[0].strip() for line in lines[1:5]] == [
+        "hopper-medium__td3bc (3 runs)",
+        "hopper-medium__eabc (3 runs)",
+        "walker2d-medium__td3bc (3 runs)",
+        "walker2d-medium__eabc (3 runs)",
+    ]
+    assert lines[5] == f"{specs[1]}: 6 runs to train, 1 group"
+    assert lines[6].startswith("  hopper-random__td3bc+1 (6 runs): hopper-random")
+    assert "hopper-medium-replay" in lines[6] and lines[6].endswith(
+        " a run on the reference CPU host"
+    )
+    assert not out.exists() and not root.exists()
+
+
 def test_a_stopped_group_is_narrowed_to_what_fits(tmp_path):
     stopped = trainer.PastDeadline(10, 5_000, 1_000_000, 2_000.0, 20.0, 300.0)  # 20K seed-steps/s
     assert study.fitting(stopped, 400.0) == 7  # 380 s x 20K / 1.05M seed-steps per run: 7.2

@@ -63,6 +63,9 @@ class Study:
     (default: the CPU cores less one; 0 evaluates in the training process between chunks)."""
     steps: Steps | None = None
     """Gradient steps per run (default the spec's)."""
+    dry_run: bool = False
+    """List the slices' groups in the order they would train, their datasets (made or to make)
+    and estimates, then stop: nothing is made, trained or written."""
     smoke: bool = False
     """The same code path at toy sizes: the first slice's first two groups and the second's first,
     two seeds each, 40 steps per run, one evaluation episode every 20 steps, datasets of 2,000 transitions in a
@@ -81,7 +84,7 @@ def run_study(cmd: Study) -> None:
             "eabc study: no spec given; name at least one sweep spec (YAML), e.g. "
             "eabc study docs/results/study-1m/1-hopper-halfcheetah.yaml --within 45m"
         )
-    out = study.check_out(cmd.out)
+    out = None if cmd.dry_run else study.check_out(cmd.out)
     size, slices = None, []
     cache = tempfile.mkdtemp(prefix="eabc-study-smoke-") if cmd.smoke else None
     for path in cmd.specs:
@@ -106,6 +109,9 @@ def run_study(cmd: Study) -> None:
         if done:
             print(f"{len(done)} runs done in {', '.join(cmd.include)}: not trained again")
         slices = [[r for r in runs if r.run_id not in done] for runs in slices]
+    if cmd.dry_run:
+        print("\n".join(study.plan(slices, paths.expand(cmd.root), list(cmd.specs))))
+        return
     deadline = None if cmd.within is None else time.time() + planning.parse_duration(cmd.within)
     workers = cmd.data_workers or max(1, (os.cpu_count() or 2) - 1)
     evaluators = cmd.eval_workers

@@ -29,7 +29,7 @@ from typing import Any
 
 import pandas as pd
 
-from eabc import paths
+from eabc import paths, timing
 from eabc.data import generate, sources
 from eabc.experiments import job_process, planning, results, run_status
 from eabc.experiments.spec import RunSpec, job_name
@@ -227,6 +227,31 @@ def run_study(
         f"narrowed {len(report['narrowed'])}, {len(report['failed'])} failed; {report['exported']} runs in {out}"
     )
     return report
+
+
+def plan(slices: list[list[RunSpec]], root: Path, names: list[str]) -> list[str]:
+    """What :func:`run_study` would train, as lines: per slice (``names``, e.g. its spec's file),
+    its groups in order, each with its runs, its datasets (made already, or to make) and one
+    run's estimate on the reference CPU host (what the deadline's first guess scales; a group is
+    one program, timed on the accelerator by its first chunks)."""
+    lines = []
+    for name, runs in zip(names, slices):
+        jobs = planning.jobs(runs, root, "vmap")
+        lines.append(f"{name}: {sum(len(job) for job in jobs)} runs to train, {len(jobs)} group{'s' * (len(jobs) != 1)}")
+        for job in jobs:
+            data = []
+            for dataset in dict.fromkeys(run.dataset for run in job):
+                config = job[0].train_config()
+                made = sources.kind(dataset) != "builtin" or generate.is_current(
+                    generate.dataset_path(dataset, config.cache_dir), dataset
+                )
+                data.append(dataset if made else f"{dataset} (to make)")
+            seconds = max(planning.estimate_seconds(r, run_status.status(r, root)[1]) for r in job)
+            label = f"{job_name(job)} ({len(job)} run{'s' * (len(job) > 1)})"
+            lines.append(
+                f"  {label}: {', '.join(data)}; {timing.duration(seconds)} a run on the reference CPU host"
+            )
+    return lines
 
 
 def check_out(out: str | Path) -> Path:
