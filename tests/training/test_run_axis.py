@@ -12,6 +12,7 @@ from types import SimpleNamespace
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pandas as pd
 import pytest
 
 from eabc import ranges
@@ -20,7 +21,7 @@ from eabc.data.dataset import Normalizer
 from eabc.data.loaders import save_npz
 from eabc.experiments import job_process
 from eabc.experiments.spec import RunSpec, expand, groups, job_name
-from eabc.training import chunks, lifecycle, trainer
+from eabc.training import chunks, eval_pool, lifecycle, trainer
 from eabc.training.config import TrainConfig
 
 TRAIN = dict(
@@ -190,23 +191,29 @@ def test_a_group_past_its_deadline_stops_after_its_first_chunks_and_resumes_as_i
 ):
     """With a deadline the first chunks time the program; where the rest would end after it,
     training stops there (:class:`trainer.PastDeadline`: the width, the step, the speed), the
-    runs' locks are free, and resumed without a deadline the runs end with the same parameters as
-    the same group never stopped."""
+    runs' locks are free, and resumed without a deadline the runs end with the same parameters
+    and log as the same group never stopped; evaluated by a pool, as a study does, whose
+    evaluations were still out when it stopped."""
     monkeypatch.setattr(trainer, "PROBE_CHUNKS", 2)
     monkeypatch.setattr(trainer, "PROBE_SECONDS", 0.0)
     path = str(tmp_path / "swing.npz")
     save_npz(_cut(pendulum_dataset, 5_000, "swing"), path)
-    train = tuple(sorted({**TRAIN, "steps": 600, "checkpoint_interval": 200}.items()))
+    train = {**TRAIN, "steps": 600, "checkpoint_interval": 200, "eval_interval": 100}
+    train = tuple(sorted(train.items()))
     agent = tuple(sorted({"hidden_dims": (32, 32)}.items()))
     job = [RunSpec(path, "td3bc", seed, agent, train).to_json() for seed in (0, 1)]
-    with pytest.raises(trainer.PastDeadline) as stopped:
-        job_process.execute(job, str(tmp_path / "stopped"), deadline=time.time() + 1e-3)
+    pool = eval_pool.EvaluationPool(1)
+    try:
+        with pytest.raises(trainer.PastDeadline) as stopped:
+            job_process.execute(job, str(tmp_path / "stopped"), pool, time.time() + 1e-3)
+        resumed = job_process.execute(job, str(tmp_path / "stopped"), pool)  # locks released
+        never = job_process.execute(job, str(tmp_path / "never"), pool, time.time() + 3600)
+    finally:
+        pool.close(finished=True)
     error = stopped.value
     assert (error.width, error.step, error.steps) == (2, 300, 600)  # timed: steps 100-300
     assert error.steps_per_s > 0 and error.compile_s >= 0 and error.late_s > 0
     assert "2 runs at" in str(error) and "after the deadline (step 300 of 600)" in str(error)
-    resumed = job_process.execute(job, str(tmp_path / "stopped"))  # the locks were released
-    never = job_process.execute(job, str(tmp_path / "never"), deadline=time.time() + 3600)
     assert [s["final_score"] for s in resumed] == [s["final_score"] for s in never]
     for spec in job:
         run_id = RunSpec.from_json(spec).run_id
@@ -217,3 +224,6 @@ def test_a_group_past_its_deadline_stops_after_its_first_chunks_and_resumes_as_i
         assert got.step == expected.step == 600
         for a, b in zip(_leaves(got.state["agent"]), _leaves(expected.state["agent"]), strict=True):
             np.testing.assert_array_equal(a, b)
+        logs = [pd.read_csv(got.run_dir / "log.csv"), pd.read_csv(expected.run_dir / "log.csv")]
+        assert [len(log) for log in logs] == [6, 6]  # a row every 100 steps, none twice
+        pd.testing.assert_series_equal(logs[0]["score"], logs[1]["score"])
