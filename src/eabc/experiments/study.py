@@ -237,7 +237,9 @@ def plan(slices: list[list[RunSpec]], root: Path, names: list[str]) -> list[str]
     lines = []
     for name, runs in zip(names, slices):
         jobs = planning.jobs(runs, root, "vmap")
-        lines.append(f"{name}: {sum(len(job) for job in jobs)} runs to train, {len(jobs)} group{'s' * (len(jobs) != 1)}")
+        lines.append(
+            f"{name}: {sum(len(job) for job in jobs)} runs to train, {len(jobs)} group{'s' * (len(jobs) != 1)}"
+        )
         for job in jobs:
             data = []
             for dataset in dict.fromkeys(run.dataset for run in job):

@@ -233,7 +233,7 @@ def _train_together(
             length = min(config.log_interval, config.steps - first.step)
             started = time.perf_counter()
             if probe is not None:
-                probe.check(first.step, length)
+                probe.check(first.step)
             if len(runs) == 1:
                 agent, key, metrics = train_chunk(
                     first.state["agent"],
@@ -316,27 +316,31 @@ def _train_together(
 
 class _Probe:
     """Times a program's first chunks and, once they show its speed, whether the rest of its steps
-    ends before ``deadline``; asked once, before each chunk."""
+    ends before ``deadline``; asked before each chunk with the step reached."""
 
     def __init__(self, deadline: float, width: int, steps: int):
         self.deadline, self.width, self.steps = deadline, width, steps
-        self.chunks, self.start, self.origin, self.last = 0, time.time(), None, None
+        self.calls, self.decided = 0, False
+        self.began = self.timed = None  # (step, time) before the first chunk, and after it
 
-    def check(self, step: int, length: int) -> None:
+    def check(self, step: int) -> None:
         now = time.time()
-        if self.chunks == 1:  # the first chunk, compiled and run: speed is timed from here
-            self.origin, self.first_s, self.first_length = (step, now), now - self.start, length
-        self.chunks += 1
-        if self.origin is None or self.last is not None:
+        self.calls += 1
+        if self.calls == 1:
+            self.began = (step, now)
+        elif self.calls == 2:  # the first chunk (it compiled the program) is done
+            self.timed = (step, now)
+        if self.timed is None or self.decided:
             return
-        done, seconds = step - self.origin[0], now - self.origin[1]
-        if self.chunks <= PROBE_CHUNKS + 1 or seconds < PROBE_SECONDS:
+        done, seconds = step - self.timed[0], now - self.timed[1]
+        if self.calls <= PROBE_CHUNKS + 1 or seconds < PROBE_SECONDS:
             return
-        self.last = now  # decided once
+        self.decided = True
         rate = done / max(seconds, 1e-9)
         end = now + DEADLINE_MARGIN * (self.steps - step) / rate
         if end > self.deadline:
-            compile_s = max(0.0, self.first_s - self.first_length / rate)
+            first_chunk = self.timed[1] - self.began[1]
+            compile_s = max(0.0, first_chunk - (self.timed[0] - self.began[0]) / rate)
             raise PastDeadline(self.width, step, self.steps, rate, compile_s, end - self.deadline)
 
 
