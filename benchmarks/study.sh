@@ -62,20 +62,22 @@ if ! [[ "$within" =~ ^[0-9]+$ && "$limit" =~ ^[0-9]+$ ]]; then
   exit 2
 fi
 width=()
+width_limit="${WIDTH_LIMIT:-90}"
 if [ "${extra[0]:-}" = --smoke ]; then  # the same path, on a CPU and at toy sizes
   width=(--algos td3bc --widths 1 2 --steps 5 --repeats 1 --size 5000)
+  width_limit="${WIDTH_LIMIT:-240}"  # mostly starting JAX and compiling: slow on a busy CPU
 elif [ ! -f docs/results/study-1m/width-gpu.md ] && nvidia-smi -L >/dev/null 2>&1; then
   width=(--algos eabc eabc-ln --widths 1 25 --steps 500 --repeats 3)
 fi
 if [ "${#width[@]}" -gt 0 ]; then
-  limit=$((limit - ${WIDTH_LIMIT:-90}))
-  within=$((within - ${WIDTH_LIMIT:-90}))
+  limit=$((limit - width_limit))
+  within=$((within - width_limit))
 fi
 status=0
 timeout "$limit" python3 -m eabc.cli study docs/results/study-1m/[0-9]*.yaml \
   --out "$OUT" --root "$root" --within "${within}s" "${extra[@]}" || status=$?
 if [ "${#width[@]}" -gt 0 ]; then
-  timeout "${WIDTH_LIMIT:-90}" python3 -u benchmarks/width.py "${width[@]}" > "$OUT/width.md" 2>&1 \
+  timeout "$width_limit" python3 -u benchmarks/width.py "${width[@]}" > "$OUT/width.md" 2>&1 \
     || echo "width.py ended with status $? (a timeout is 124)" >> "$OUT/width.md"
 fi
 exit "$status"
