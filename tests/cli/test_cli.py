@@ -85,6 +85,12 @@ def test_data_commands(tmp_path, capsys, monkeypatch):
     assert info["d4rl_normalized_return"] == 1.0 and abs(info["normalized_return"]) < 10
     row = next(line for line in listing.splitlines() if line.startswith("hopper-random "))
     assert row.split()[1:3] == ["600", str(info["episodes"])], row
+    # One column each, however long a name (``@planner-v0``'s were wider than the names column):
+    # every row's D4RL level ends where the header's ``D4RL`` does.
+    rows = listing.splitlines()
+    end = rows[0].index("D4RL") + len("D4RL")
+    assert any("@" in row for row in rows)
+    assert all(row[end - 1] != " " and row[end : end + 2] == "  " for row in rows), listing
 
     # Export to Minari and read it back through minari:ID: the same transitions.
     monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "minari"))

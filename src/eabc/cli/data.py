@@ -168,20 +168,22 @@ def run_data(cmd: DataMake | DataInfo | DataList | DataExport) -> None:
             print(f"{path} was made from older zoo policies; making it again", file=sys.stderr)
         print(_make(cmd, path))
     elif isinstance(cmd, DataList):
-        header = f"{'dataset':26s} {'transitions':>11s} {'episodes':>8s} {'return':>17s} {'score':>6s} {'D4RL':>5s}  file"
+        names = generate.builtin_names()
+        wide = max(len("dataset"), *map(len, names))  # the names column fits the longest name
+        header = f"{'dataset':{wide}s} {'transitions':>11s} {'episodes':>8s} {'return':>17s} {'score':>6s} {'D4RL':>5s}  file"
         print(header)
-        for name in generate.builtin_names():
+        for name in names:
             path = generate.dataset_path(name, cmd.cache_dir)
             level = _number(describe.d4rl_level(name), 5, ".0f")
             if not path.exists():
-                print(f"{name:26s} {'-':>11s} {'-':>8s} {'-':>17s} {'-':>6s} {level}  (not made)")
+                print(f"{name:{wide}s} {'-':>11s} {'-':>8s} {'-':>17s} {'-':>6s} {level}  (not made)")
                 continue
             try:  # one unreadable file is one row, not the end of the list
                 info = describe.describe(path)
             except (DatasetError, OSError) as error:
                 why = " ".join(str(error).split())
                 print(
-                    f"{name:26s} {'-':>11s} {'-':>8s} {'-':>17s} {'-':>6s} {level}  {path} "
+                    f"{name:{wide}s} {'-':>11s} {'-':>8s} {'-':>17s} {'-':>6s} {level}  {path} "
                     f"(unreadable: {why[:160]}; eabc data make {name} --force)"
                 )
                 continue
@@ -193,7 +195,7 @@ def run_data(cmd: DataMake | DataInfo | DataList | DataExport) -> None:
                 spread = "-" if rate is None else f"{rate:.0%} reach goal"
                 episodes, score = info["timeouts"], _number(None, 6, "")
             print(
-                f"{name:26s} {info['transitions']:11d} {episodes:8d} {spread:>17s} "
+                f"{name:{wide}s} {info['transitions']:11d} {episodes:8d} {spread:>17s} "
                 f"{score} {level}  {path}"
             )
     elif isinstance(cmd, DataExport) and cmd.d3rlpy is not None:
