@@ -46,6 +46,11 @@ elif [ -f docs/results/study-1m/runs.csv ]; then
 fi
 OUT="${OUT:?set OUT to the folder that receives the results}"
 if [ -d benchmarks/wheels ] && ! python3 -c "import mujoco, gymnasium, tyro" 2>/dev/null; then
+  if ! python3 -c 'import sys; assert sys.version_info[:2] == (3, 12)' 2>/dev/null; then
+    echo "study.sh: $(command -v python3) lacks MuJoCo, Gymnasium or tyro, and benchmarks/wheels" \
+      "holds the GPU machines' Python 3.12 wheels: activate the environment eabc is installed in" >&2
+    exit 2
+  fi
   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
     --target /tmp/eabc-site benchmarks/wheels/*.whl
   export PYTHONPATH="/tmp/eabc-site${PYTHONPATH:+:$PYTHONPATH}"

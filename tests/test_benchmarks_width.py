@@ -92,11 +92,8 @@ def _documented_commands() -> list[list[str]]:
     commands = []
     for page in pages:
         for line in page.read_text(encoding="utf-8").splitlines():
-            words = (
-                shlex.split(line.strip(), comments=True) if "benchmarks/width.py" in line else []
-            )
-            if words[:2] == ["python", "benchmarks/width.py"]:
-                commands.append(words[2:])
+            if line.strip().startswith("python benchmarks/width.py"):  # prose may name the file
+                commands.append(shlex.split(line.strip(), comments=True)[2:])
     return commands
 
 

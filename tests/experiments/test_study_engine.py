@@ -7,6 +7,7 @@ import importlib.metadata
 import os
 import re
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -31,6 +32,8 @@ def test_the_device_script_smoke_run_streams_finished_runs_that_report_reads(tmp
     report --include`; a second study given --include OUT trains nothing."""
     out = tmp_path / "out"
     env = {**os.environ, "OUT": str(out), "EABC_FAST_COMPILE": "1", "TMPDIR": str(tmp_path)}
+    # The script runs `python3`: this interpreter's, as in an activated environment (CI's).
+    env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}"
     done = subprocess.run(
         ["bash", str(SCRIPT), "--smoke"], env=env, capture_output=True, text=True, timeout=900
     )

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import tomllib
@@ -18,7 +20,10 @@ def test_import_contracts_hold_with_no_exceptions():
         assert (
             "ignore_imports" not in contract and "unmatched_ignore_imports_alerting" not in contract
         )
-    lint = shutil.which("lint-imports")
+    # This interpreter's environment first: its tools are on PATH only when it is activated.
+    lint = shutil.which(
+        "lint-imports", path=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"
+    )
     assert lint, "import-linter is a dev dependency: pip install -e '.[dev]'"
     result = subprocess.run([lint], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stdout[-3000:]

@@ -176,7 +176,9 @@ def run_data(cmd: DataMake | DataInfo | DataList | DataExport) -> None:
             path = generate.dataset_path(name, cmd.cache_dir)
             level = _number(describe.d4rl_level(name), 5, ".0f")
             if not path.exists():
-                print(f"{name:{wide}s} {'-':>11s} {'-':>8s} {'-':>17s} {'-':>6s} {level}  (not made)")
+                print(
+                    f"{name:{wide}s} {'-':>11s} {'-':>8s} {'-':>17s} {'-':>6s} {level}  (not made)"
+                )
                 continue
             try:  # one unreadable file is one row, not the end of the list
                 info = describe.describe(path)
