@@ -33,9 +33,6 @@ import os
 from pathlib import Path
 
 import numpy as np
-from matplotlib.colors import LogNorm
-from matplotlib.figure import Figure
-from matplotlib.patches import Circle, Rectangle
 
 from eabc import numpy_networks
 from eabc.data import antmaze, mazes, zoo
@@ -465,6 +462,10 @@ def plot_coverage(dataset: Dataset, path: str | os.PathLike) -> Path:
             f"{dataset.name}: --plot draws AntMaze data over its maze, but the data's environment "
             f"is {dataset.env_id!r}, not one of {', '.join(antmaze.ENV_IDS.values())}"
         )
+    from matplotlib.colors import LogNorm  # noqa: PLC0415 (only --plot draws: not on every start)
+    from matplotlib.figure import Figure  # noqa: PLC0415 (only --plot draws: not on every start)
+    from matplotlib.patches import Circle, Rectangle  # noqa: PLC0415 (only --plot draws)
+
     half = mazes.SCALING / 2
     rows, cols = maze.shape
     low, high = maze.cell_to_xy((0, 0)) - half, maze.cell_to_xy((rows - 1, cols - 1)) + half

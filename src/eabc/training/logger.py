@@ -9,7 +9,6 @@ import json
 import math
 from pathlib import Path
 
-from matplotlib.figure import Figure
 from tensorboardX import SummaryWriter
 from tensorboardX.summary import hparams
 
@@ -207,6 +206,8 @@ def _numbers(cells: dict[str, str]) -> dict[str, float]:
 
 def plot_curve(evaluations: list[dict[str, float]], path: Path, title: str) -> None:
     """Normalised score (or return) against gradient steps."""
+    from matplotlib.figure import Figure  # noqa: PLC0415 (drawn at a run's end: not on every command's start)
+
     key = "score" if evaluations and "score" in evaluations[0] else "return_mean"
     steps = [e["step"] for e in evaluations]
     values = [e[key] for e in evaluations]
