@@ -57,7 +57,9 @@ def runs(algorithm, config, width: int):
     import jax
 
     init_keys = jax.random.split(jax.random.PRNGKey(0), width)
-    states = jax.vmap(lambda key: algorithm.init(key, OBS_DIM, ACT_DIM, config))(init_keys)
+    # One compiled program (run eagerly under vmap, the init compiled some 40 small ones).
+    init = jax.jit(jax.vmap(lambda key: algorithm.init(key, OBS_DIM, ACT_DIM, config)))
+    states = init(init_keys)
     keys = jax.random.split(jax.random.PRNGKey(1), width)
     if width == 1:
         return jax.tree.map(lambda x: x[0], (states, keys))
