@@ -25,9 +25,10 @@ SCRIPT = ROOT / "benchmarks" / "study.sh"
 
 
 def test_the_device_script_smoke_run_streams_finished_runs_that_report_reads(tmp_path):
-    """The very script a lent GPU runs, at toy sizes on this CPU: the first slice's first two
-    groups (TD3+BC and EABC on hopper-medium) and the second slice's first (TD3+BC, one program
-    over hopper-medium-replay and hopper-random), two seeds each, train in slice order, and OUT
+    """The very script a lent GPU runs, at toy sizes on this CPU: the first slice's first three
+    groups (TD3+BC on hopper-medium and on halfcheetah-medium, then EABC on hopper-medium: a
+    slice goes algorithm by algorithm) and the second slice's first (TD3+BC, one program over
+    hopper-medium-replay and hopper-random), two seeds each, train in slice order, and OUT
     holds exactly the study's files and the width table, its runs done and read back by `eabc
     report --include`; a second study given --include OUT trains nothing."""
     out = tmp_path / "out"
@@ -42,18 +43,20 @@ def test_the_device_script_smoke_run_streams_finished_runs_that_report_reads(tmp
     width = (out / "width.md").read_text()  # measured after the study, in its own seconds
     assert "| td3bc | 1 |" in width and "| td3bc | 2 |" in width, width
     runs, evaluations = archive_merge.read_archive(out)
-    trained = [("hopper-medium", "td3bc"), ("hopper-medium", "eabc"),
-               ("hopper-medium-replay", "td3bc"), ("hopper-random", "td3bc")]  # fmt: skip
+    trained = [("hopper-medium", "td3bc"), ("halfcheetah-medium", "td3bc"),
+               ("hopper-medium", "eabc"), ("hopper-medium-replay", "td3bc"),
+               ("hopper-random", "td3bc")]  # fmt: skip
     assert sorted(runs["run_id"]) == sorted(
         f"runs/{data}__{algo}__seed{seed}" for data, algo in trained for seed in (0, 1)
     )
     assert (runs["status"] == "done").all() and (runs["steps"] == 40).all()
-    assert len(evaluations) == 8 * 2  # every 20 of 40 steps
+    assert len(evaluations) == 10 * 2  # every 20 of 40 steps
     logs = pd.read_csv(out / "logs.csv")
-    assert list(logs.columns[:2]) == ["run_id", "step"] and len(logs) == 8 * 2
+    assert list(logs.columns[:2]) == ["run_id", "step"] and len(logs) == 10 * 2
     started = re.findall(r"training (\S+ \(\d+ runs\))", (out / "study.log").read_text())
     assert started == [
         "hopper-medium__td3bc (2 runs)",
+        "halfcheetah-medium__td3bc (2 runs)",
         "hopper-medium__eabc (2 runs)",
         "hopper-medium-replay__td3bc+1 (4 runs)",
     ]
@@ -61,7 +64,7 @@ def test_the_device_script_smoke_run_streams_finished_runs_that_report_reads(tmp
     spec = sorted((ROOT / "docs" / "results" / "study-1m").glob("[0-9]*.yaml"))[0]
     argv = ["study", str(spec), "--smoke", "--out", str(again), "--root", str(tmp_path / "r2")]
     cli.main([*argv, "--include", str(out)])
-    assert pd.read_csv(again / "runs.csv").empty  # all four were in OUT: none trained again
+    assert pd.read_csv(again / "runs.csv").empty  # all six were in OUT: none trained again
 
 
 def _queue(tmp_path):
@@ -155,9 +158,9 @@ def test_a_dry_run_lists_each_slices_groups_in_order_and_touches_nothing(tmp_pat
     lines = capsys.readouterr().out.splitlines()
     assert lines[0] == f"{specs[0]}: 12 runs to train, 4 groups"
     assert [line.split(":")[0].strip() for line in lines[1:5]] == [
-        "hopper-medium__td3bc (3 runs)",
-        "hopper-medium__eabc (3 runs)",
+        "hopper-medium__td3bc (3 runs)",  # algorithm by algorithm: the first on both datasets
         "walker2d-medium__td3bc (3 runs)",
+        "hopper-medium__eabc (3 runs)",
         "walker2d-medium__eabc (3 runs)",
     ]
     assert lines[5] == f"{specs[1]}: 6 runs to train, 1 group"

@@ -17,9 +17,10 @@ SMOKE = {"steps": 40, "log_interval": 20, "eval_interval": 20, "checkpoint_inter
          "eval_episodes": 1}  # fmt: skip
 """What ``--smoke`` shortens every run to (with datasets of :data:`SMOKE_DATASET_SIZE`)."""
 SMOKE_DATASET_SIZE = 2_000
-SMOKE_GROUPS, SMOKE_SEEDS = (2, 1), 2
-"""``--smoke`` trains the first two groups of the first spec and the first of the second (or
-fewer, where the specs are fewer), each with two seeds."""
+SMOKE_GROUPS, SMOKE_SEEDS = (3, 1), 2
+"""``--smoke`` trains the first three groups of the first spec (its first algorithm on both
+datasets, then the second's first) and the first of the second (or fewer, where the specs are
+fewer), each with two seeds."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -43,7 +44,8 @@ class Study:
         tyro.conf.arg(metavar="SPEC", help_behavior_hint="(one or more)"),
     ]
     """Sweep specs (YAML: datasets, algos or variants, seeds, steps, train): the queue's slices,
-    in their order; within one, the spec's own order, and the runs that can share one program
+    in their order; within one, algorithm by algorithm in the spec's order (each on all the
+    slice's datasets before the next), and the runs that can share one program
     (seeds, datasets of one environment) as one group."""
     out: str = "study-out"
     """Where the finished runs' results go (runs.csv, evaluations.csv, logs.csv, runs.jsonl,
@@ -67,7 +69,7 @@ class Study:
     """List the slices' groups in the order they would train, their datasets (made or to make)
     and estimates, then stop: nothing is made, trained or written."""
     smoke: bool = False
-    """The same code path at toy sizes: the first slice's first two groups and the second's first,
+    """The same code path at toy sizes: the first slice's first three groups and the second's first,
     two seeds each, 40 steps per run, one evaluation episode every 20 steps, datasets of 2,000 transitions in a
     temporary cache; for a check on any machine."""
 
@@ -96,7 +98,7 @@ def run_study(cmd: Study) -> None:
             train = {k: v for k, v in SMOKE.items() if k != "steps"}
             spec["train"] = {**(spec.get("train") or {}), **train, "cache_dir": cache}
             size = SMOKE_DATASET_SIZE
-        slices.append(expand(spec))
+        slices.append(study.algorithm_major(expand(spec)))
     if cmd.smoke:  # a few groups, two seeds each: every stage of the path, in a minute
         seeds = sorted({r.seed for runs in slices for r in runs})[:SMOKE_SEEDS]
         slices = [

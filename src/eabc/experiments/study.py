@@ -128,6 +128,17 @@ def start_datasets(
     return futures, pool
 
 
+def algorithm_major(runs: list[RunSpec]) -> list[RunSpec]:
+    """``runs`` algorithm by algorithm, in the order of each algorithm's first run, otherwise as
+    given (a spec's expansion lists them dataset by dataset): a slice trains its first algorithm
+    on all its datasets before the next, so that a call too short for the whole slice brings back
+    one method's row on every dataset rather than every method on the first dataset."""
+    first: dict[str, int] = {}
+    for run in runs:
+        first.setdefault(run.algo, len(first))
+    return sorted(runs, key=lambda run: first[run.algo])
+
+
 def _scale(took: dict[str, list[tuple[float, float]]], algo: str) -> float:
     """How long groups took here against their reference-host estimates: this algorithm's
     groups where one has finished, else every finished group's, else 1."""
