@@ -172,20 +172,19 @@ def run_data(cmd: DataMake | DataInfo | DataList | DataExport) -> None:
         wide = max(len("dataset"), *map(len, names))  # the names column fits the longest name
         header = f"{'dataset':{wide}s} {'transitions':>11s} {'episodes':>8s} {'return':>17s} {'score':>6s} {'D4RL':>5s}  file"
         print(header)
+        unknown = f"{'-':>11s} {'-':>8s} {'-':>17s} {'-':>6s}"  # no file to describe
         for name in names:
             path = generate.dataset_path(name, cmd.cache_dir)
             level = _number(describe.d4rl_level(name), 5, ".0f")
             if not path.exists():
-                print(
-                    f"{name:{wide}s} {'-':>11s} {'-':>8s} {'-':>17s} {'-':>6s} {level}  (not made)"
-                )
+                print(f"{name:{wide}s} {unknown} {level}  (not made)")
                 continue
             try:  # one unreadable file is one row, not the end of the list
                 info = describe.describe(path)
             except (DatasetError, OSError) as error:
                 why = " ".join(str(error).split())
                 print(
-                    f"{name:{wide}s} {'-':>11s} {'-':>8s} {'-':>17s} {'-':>6s} {level}  {path} "
+                    f"{name:{wide}s} {unknown} {level}  {path} "
                     f"(unreadable: {why[:160]}; eabc data make {name} --force)"
                 )
                 continue
