@@ -52,18 +52,20 @@ def setup(algo: str, size: int):
 
 
 def runs(algorithm, config, width: int):
-    """``(states, keys)`` of ``width`` runs, each initialised from its own seed (one state and
-    key, not stacked, at width 1)."""
+    """``(states, keys)`` of ``width`` runs, each initialised from its own seed as the trainer
+    initialises a run (one compiled init program, whatever the width), stacked on a leading axis
+    (one state and key, not stacked, at width 1)."""
     import jax
+    import numpy as np
+
+    from eabc.training.lifecycle import init_agent
 
     init_keys = jax.random.split(jax.random.PRNGKey(0), width)
-    # One compiled program (run eagerly under vmap, the init compiled some 40 small ones).
-    init = jax.jit(jax.vmap(lambda key: algorithm.init(key, OBS_DIM, ACT_DIM, config)))
-    states = init(init_keys)
+    each = [init_agent(algorithm.init, key, OBS_DIM, ACT_DIM, config) for key in init_keys]
     keys = jax.random.split(jax.random.PRNGKey(1), width)
     if width == 1:
-        return jax.tree.map(lambda x: x[0], (states, keys))
-    return states, keys
+        return each[0], keys[0]
+    return jax.tree.map(lambda *xs: jax.numpy.asarray(np.stack(xs)), *each), keys
 
 
 def measure(algo: str, widths, steps: int, repeats: int, size: int) -> dict[int, list[float]]:

@@ -30,7 +30,7 @@ def test_the_device_script_smoke_run_streams_finished_runs_that_report_reads(tmp
     slice goes algorithm by algorithm) and the second slice's first (TD3+BC, one program over
     hopper-medium-replay and hopper-random), two seeds each, train in slice order, and OUT
     holds exactly the study's files and the width table, its runs done and read back by `eabc
-    report --include`; a second study given --include OUT trains nothing."""
+    report --include`, and nothing is left in TMPDIR; a second study given --include OUT trains nothing."""
     out = tmp_path / "out"
     env = {**os.environ, "OUT": str(out), "EABC_FAST_COMPILE": "1", "TMPDIR": str(tmp_path)}
     # The script runs `python3`: this interpreter's, as in an activated environment (CI's).
@@ -40,6 +40,7 @@ def test_the_device_script_smoke_run_streams_finished_runs_that_report_reads(tmp
     )
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
     assert sorted(p.name for p in out.iterdir()) == sorted([*study.OUT_FILES, "width.md"])
+    assert not list(tmp_path.glob("eabc-study-smoke-*"))  # its datasets went with it
     width = (out / "width.md").read_text()  # measured after the study, in its own seconds
     assert "| td3bc | 1 |" in width and "| td3bc | 2 |" in width, width
     runs, evaluations = archive_merge.read_archive(out)

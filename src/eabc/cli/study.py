@@ -78,17 +78,26 @@ def run_study(cmd: Study) -> None:
     # Before JAX starts its backend: one process trains the whole queue, growing its memory as
     # the programs need it, instead of taking 75% of the GPU up front.
     os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
-    from eabc.experiments import archive_merge, planning, run_status, study  # noqa: PLC0415
-    from eabc.experiments.spec import expand, groups, load_spec  # noqa: PLC0415
 
     if not cmd.specs:  # tyro takes none; a study of nothing would write an empty --out
         raise ValueError(
             "eabc study: no spec given; name at least one sweep spec (YAML), e.g. "
             "eabc study docs/results/study-1m/1-hopper-halfcheetah.yaml --within 45m"
         )
+    if not cmd.smoke:
+        _study(cmd, None)
+        return
+    # The smoke run's small datasets live only as long as the run; nothing is left in /tmp.
+    with tempfile.TemporaryDirectory(prefix="eabc-study-smoke-") as cache:
+        _study(cmd, cache)
+
+
+def _study(cmd: Study, cache: str | None) -> None:
+    from eabc.experiments import archive_merge, planning, run_status, study  # noqa: PLC0415
+    from eabc.experiments.spec import expand, groups, load_spec  # noqa: PLC0415
+
     out = None if cmd.dry_run else study.check_out(cmd.out)
     size, slices = None, []
-    cache = tempfile.mkdtemp(prefix="eabc-study-smoke-") if cmd.smoke else None
     for path in cmd.specs:
         spec = load_spec(path)
         if cmd.steps is not None:
