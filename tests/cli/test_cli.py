@@ -245,3 +245,20 @@ def test_a_sweep_checks_every_dataset_before_its_first_run(tmp_path, npz):
     (tmp_path / "spec.yaml").write_text(json.dumps(spec))
     _refused(["sweep", str(tmp_path / "spec.yaml"), "--root", str(tmp_path / "root"),
               "--dry-run"], "grid: td3bc setting alpha must be a finite number >= 0, got -1.0")  # fmt: skip
+
+
+def test_a_dry_run_refuses_the_time_budget_and_out_that_the_run_would(tmp_path, npz):
+    """Before: `eabc sweep/study ... --within 5x --dry-run` printed its plan, and only the real
+    command refused the budget (a study's its --out too): a dry run passed what would fail."""
+    spec = tmp_path / "spec.yaml"
+    spec.write_text(json.dumps({"datasets": [str(npz)], "algos": ["bc"], "steps": 100}))
+    root = ["--root", str(tmp_path / "root")]
+    bad = r"--within: a duration is a positive number with s, m or h \(90s, 45m, 2.5h\), got '5x'"
+    for command in ("sweep", "study"):
+        _refused([command, str(spec), *root, "--within", "5x", "--dry-run"], bad)
+    _refused(["sweep", str(spec), *root, "--within", "5m", "--backend", "ray", "--dry-run"],
+             "--within works with the local backend only")  # fmt: skip
+    (tmp_path / "afile").write_text("")
+    _refused(["study", str(spec), *root, "--out", str(tmp_path / "afile"), "--dry-run"],
+             "--out .*afile is a file")  # fmt: skip
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile", "pendulum.npz", "spec.yaml"]

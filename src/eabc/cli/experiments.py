@@ -238,6 +238,10 @@ def _run_sweep(cmd: Sweep) -> None:
     )
     from eabc.experiments.spec import expand  # noqa: PLC0415
 
+    # The options first, so that a dry run refuses what the sweep would.
+    budget = None if cmd.within is None else planning.parse_duration(cmd.within, "--within")
+    if budget is not None and cmd.backend != "local":
+        raise ValueError("--within works with the local backend only")
     root = paths.expand(cmd.root)
     runs = expand(sweep_spec(cmd))
     for dataset in dict.fromkeys(run.dataset for run in runs):  # all, before the first run
@@ -292,9 +296,7 @@ def _run_sweep(cmd: Sweep) -> None:
         if changed:  # what the sweep itself would refuse, said by its dry run
             print(f"the sweep would refuse to start: {changed}", file=sys.stderr)
         return
-    deadline = None if cmd.within is None else time.time() + planning.parse_duration(cmd.within)
-    if deadline is not None and cmd.backend != "local":
-        raise ValueError("--within works with the local backend only")
+    deadline = None if budget is None else time.time() + budget
     layout = planning.default_layout() if cmd.layout == "auto" else cmd.layout
     job_list = planning.jobs(runs, root, layout)
     job_process.prepare_datasets([job[0] for job in job_list])

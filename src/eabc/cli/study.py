@@ -96,7 +96,9 @@ def _study(cmd: Study, cache: str | None) -> None:
     from eabc.experiments import archive_merge, planning, run_status, study  # noqa: PLC0415
     from eabc.experiments.spec import expand, groups, load_spec  # noqa: PLC0415
 
-    out = None if cmd.dry_run else study.check_out(cmd.out)
+    # The options first, so that a dry run refuses what the study would.
+    budget = None if cmd.within is None else planning.parse_duration(cmd.within, "--within")
+    out = study.check_out(cmd.out)  # checked by a dry run too; written only by the study
     size, slices = None, []
     for path in cmd.specs:
         spec = load_spec(path)
@@ -123,7 +125,7 @@ def _study(cmd: Study, cache: str | None) -> None:
     if cmd.dry_run:
         print("\n".join(study.plan(slices, paths.expand(cmd.root), list(cmd.specs))))
         return
-    deadline = None if cmd.within is None else time.time() + planning.parse_duration(cmd.within)
+    deadline = None if budget is None else time.time() + budget
     workers = cmd.data_workers or max(1, (os.cpu_count() or 2) - 1)
     evaluators = cmd.eval_workers
     if evaluators is None:

@@ -112,8 +112,9 @@ def jobs(runs: list[RunSpec], root: Path, layout: str) -> list[list[RunSpec]]:
     return [[r] for r in todo]
 
 
-def parse_duration(text: str) -> float:
-    """Seconds in ``90s``, ``45m``, ``2.5h`` (a bare number is minutes)."""
+def parse_duration(text: str, flag: str | None = None) -> float:
+    """Seconds in ``90s``, ``45m``, ``2.5h`` (a bare number is minutes); a refusal names
+    ``flag``, the option it came from, where given."""
     units = {"s": 1.0, "m": 60.0, "h": 3600.0}
     value, unit = (text[:-1], text[-1]) if text and text[-1] in units else (text, "m")
     try:
@@ -121,8 +122,9 @@ def parse_duration(text: str) -> float:
     except ValueError:
         seconds = math.nan
     if not seconds > 0 or not math.isfinite(seconds):
+        where = f"{flag}: " if flag else ""
         raise ValueError(
-            f"a duration is a positive number with s, m or h (90s, 45m, 2.5h), got {text!r}"
+            f"{where}a duration is a positive number with s, m or h (90s, 45m, 2.5h), got {text!r}"
         )
     return seconds
 
