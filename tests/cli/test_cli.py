@@ -249,7 +249,8 @@ def test_a_sweep_checks_every_dataset_before_its_first_run(tmp_path, npz):
 
 def test_a_dry_run_refuses_the_time_budget_and_out_that_the_run_would(tmp_path, npz):
     """Before: `eabc sweep/study ... --within 5x --dry-run` printed its plan, and only the real
-    command refused the budget (a study's its --out too): a dry run passed what would fail."""
+    command refused the budget (a study's its --out and an unknown dataset too, the latter as a
+    failed group): a dry run passed what would fail."""
     spec = tmp_path / "spec.yaml"
     spec.write_text(json.dumps({"datasets": [str(npz)], "algos": ["bc"], "steps": 100}))
     root = ["--root", str(tmp_path / "root")]
@@ -261,4 +262,8 @@ def test_a_dry_run_refuses_the_time_budget_and_out_that_the_run_would(tmp_path, 
     (tmp_path / "afile").write_text("")
     _refused(["study", str(spec), *root, "--out", str(tmp_path / "afile"), "--dry-run"],
              "--out .*afile is a file")  # fmt: skip
+    # and a dataset no group could load (a sweep's dry run refused it; a study's listed it)
+    spec.write_text(json.dumps({"datasets": ["nope-medium"], "algos": ["bc"], "steps": 100}))
+    _refused(["study", str(spec), *root, "--dry-run"],
+             r"unknown dataset 'nope-medium' \(did you mean hopper-medium\?\)")  # fmt: skip
     assert sorted(p.name for p in tmp_path.iterdir()) == ["afile", "pendulum.npz", "spec.yaml"]
