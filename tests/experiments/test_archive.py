@@ -108,6 +108,33 @@ def test_what_is_not_a_report_is_refused_with_what_to_give(tmp_path):
         main(["report", str(tmp_path / "nothing")])
 
 
+def test_a_damaged_report_is_refused_in_one_line_naming_the_file(tmp_path):
+    """Before: an empty evaluations.csv ended in pandas' "No columns to parse from file"
+    (which file?), and one cut mid-line, or with a row's score blank, was read as it was: a
+    report stood on a number cut off after its first digits."""
+    runs, evaluations = make_results()
+    out = _archive(tmp_path, runs, evaluations)
+    path = out / "evaluations.csv"
+    text = path.read_text()
+    cut = text[: text.index("\n", len(text) // 2) + 3]  # a row's first three characters
+    blank = pd.read_csv(path)
+    blank.loc[0, "score"] = None  # the first row's score left empty
+    damaged = {
+        "": "is not a table `eabc report` wrote \\(No columns to parse from file\\)",
+        cut: "ends mid-line: the file was cut short",
+        blank.to_csv(index=False): "line 2 has no score",
+        'run_id,step,score\n"runs/a,5000,3\n': "is not a table `eabc report` wrote",
+    }
+    assert list(pd.read_csv(out / "evaluations.csv").columns[:3]) == ["run_id", "step", "score"]
+    for content, message in damaged.items():
+        path.write_text(content)
+        with pytest.raises(ValueError, match=f"evaluations.csv {message}") as error:
+            archive_merge.read_archive(out)
+        assert "\n" not in str(error.value) and "eabc report" in str(error.value)
+    path.write_text(text)
+    assert len(archive_merge.read_archive(out)[1]) == len(evaluations)  # the file as written
+
+
 def test_another_sweep_root_is_read_from_its_run_directories_even_before_its_first_run(tmp_path):
     root = tmp_path / "sweeps" / "b"
     (root / "runs").mkdir(parents=True)  # begun, no run directory yet

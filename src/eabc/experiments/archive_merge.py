@@ -41,8 +41,8 @@ def read_archive(path: str | Path) -> tuple[pd.DataFrame, pd.DataFrame]:
             f"{path} has no {' or '.join(missing)} and no run directories: give a directory "
             "that `eabc report` wrote (its --out) or a sweep root"
         )
-    runs = pd.read_csv(path / "runs.csv", keep_default_na=False, na_values=[""])
-    evals = pd.read_csv(path / "evaluations.csv")
+    runs = _read_table(path / "runs.csv", keep_default_na=False, na_values=[""])
+    evals = _read_table(path / "evaluations.csv")
     needed = {
         "runs.csv": (runs, ["run_id", "dataset", "algo", "seed", "status", "steps", "final_score"]),
         "evaluations.csv": (evals, ["run_id", "step", "score"]),
@@ -54,10 +54,40 @@ def read_archive(path: str | Path) -> tuple[pd.DataFrame, pd.DataFrame]:
                 f"{path / name} lacks the column(s) {', '.join(lacking)}: it was not "
                 "written by `eabc report`"
             )
+        filled = [c for c in columns if c != "final_score"]  # a run cut short has none
+        empty = frame[filled].isna().any(axis=1)
+        if empty.any():
+            row = int(empty.to_numpy().argmax()) + 2  # the file's line: after the header, from 1
+            blank = [c for c in filled if pd.isna(frame[c].iloc[row - 2])]
+            raise ValueError(
+                f"{path / name} line {row} has no {', '.join(blank)}: the file is damaged; "
+                f"{_RESTORE}"
+            )
     runs["variant"] = runs["variant"].astype(object).fillna("") if "variant" in runs else ""
     runs["source"], runs["archived"] = str(path), True
     columns = [*results.RUN_COLUMNS, "source", "archived"]
     return runs.reindex(columns=columns), evals.reindex(columns=results.EVAL_COLUMNS)
+
+
+_RESTORE = "restore it (git checkout -- FILE) or write it again with `eabc report`"
+
+
+def _read_table(path: Path, **options) -> pd.DataFrame:
+    """A CSV table ``eabc report`` wrote, refused in one line where it is not one: empty, not
+    CSV, or cut short (the report ends every file with a newline: a last line without one may
+    hold a number cut off after its first digits)."""
+    with path.open("rb") as file:
+        file.seek(0, 2)
+        size = file.tell()
+        if size:
+            file.seek(size - 1)
+            if file.read(1) != b"\n":
+                raise ValueError(f"{path} ends mid-line: the file was cut short; {_RESTORE}")
+    try:
+        return pd.read_csv(path, **options)
+    except (pd.errors.EmptyDataError, pd.errors.ParserError, UnicodeDecodeError) as error:
+        why = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        raise ValueError(f"{path} is not a table `eabc report` wrote ({why}); {_RESTORE}") from None
 
 
 def merge(
