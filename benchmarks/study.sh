@@ -4,6 +4,7 @@
 #   bash benchmarks/study.sh wheels    # here, where pip reaches the index: benchmarks/wheels/
 #   bash benchmarks/study.sh           # on the GPU machine, benchmarks/wheels carried: into $OUT
 #   bash benchmarks/study.sh --smoke   # the same path at toy sizes, on any machine (the suite)
+#   bash benchmarks/study.sh --help    # this text
 #
 # On the GPU machine the packages that its image lacks (MuJoCo, Gymnasium, tyro, pydantic,
 # tensorboardX and what they need; WHEELS below, checked by the suite against
@@ -22,6 +23,17 @@ cd "$(dirname "$0")/.."
 WHEELS=(mujoco mujoco-core gymnasium farama-notifications glfw pyopengl pydantic pydantic-core
   annotated-types typing-inspection tyro docstring-parser typeguard tensorboardx
   typing-extensions)  # the image has one, maybe older than pydantic's >= 4.16: carried in front
+
+case "$#:${1:-}" in  # one argument at most, one of these: anything else starts nothing
+  0: | 1:wheels | 1:--smoke) ;;
+  1:-h | 1:--help)
+    awk 'NR > 1 && /^#/ { sub(/^# ?/, ""); print; next } NR > 1 { exit }' benchmarks/study.sh
+    exit 0 ;;
+  *)
+    echo "study.sh: unknown arguments '$*': give none (the study, into \$OUT), wheels or --smoke;" \
+      "see bash benchmarks/study.sh --help" >&2
+    exit 2 ;;
+esac
 
 if [ "${1:-}" = wheels ]; then
   rm -rf benchmarks/wheels

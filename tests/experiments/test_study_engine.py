@@ -190,6 +190,25 @@ def test_out_must_be_empty_or_a_studys(tmp_path):
         study.check_out(tmp_path / "notes.txt")
 
 
+def test_the_script_starts_nothing_on_an_argument_it_does_not_know(tmp_path):
+    """Before: any argument but wheels and --smoke ran the whole study (530 s, the datasets made
+    into the user's cache): `bash benchmarks/study.sh --help` did. Now --help prints the
+    script's own header and anything else is one error line; neither makes anything."""
+    env = {**os.environ, "OUT": str(tmp_path / "out"), "HOME": str(tmp_path)}
+    for argv, code in ((["--help"], 0), (["--bogus"], 2), (["--smoke", "x"], 2), (["-h"], 0)):
+        done = subprocess.run(["bash", str(SCRIPT), *argv], env=env, capture_output=True,
+                              text=True, timeout=60)  # fmt: skip
+        assert done.returncode == code, (argv, done.stderr)
+        if code:
+            assert done.stderr.count("\n") == 1 and "unknown arguments" in done.stderr
+        else:
+            assert (
+                done.stdout.startswith("The next slice of the 1M study")
+                and "STUDY_WITHIN" in done.stdout
+            )
+    assert list(tmp_path.iterdir()) == []
+
+
 NEWER_THAN_THE_IMAGE = {
     # pydantic's and pydantic-core's wheels need typing-extensions >= 4.16, and the image's version
     # is not known here; it only ever adds names, so a newer one in front of the image's is safe.
