@@ -110,19 +110,22 @@ def test_what_is_not_a_report_is_refused_with_what_to_give(tmp_path):
 
 def test_a_damaged_report_is_refused_in_one_line_naming_the_file(tmp_path):
     """Before: an empty evaluations.csv ended in pandas' "No columns to parse from file"
-    (which file?), and one cut mid-line, or with a row's score blank, was read as it was: a
-    report stood on a number cut off after its first digits."""
+    (which file?), and one cut mid-line, or with a row's step or its score and return blank,
+    was read as it was: a report stood on a number cut off after its first digits. (A score
+    alone may be blank: data without reference returns report the raw return.)"""
     runs, evaluations = make_results()
     out = _archive(tmp_path, runs, evaluations)
     path = out / "evaluations.csv"
     text = path.read_text()
     cut = text[: text.index("\n", len(text) // 2) + 3]  # a row's first three characters
-    blank = pd.read_csv(path)
-    blank.loc[0, "score"] = None  # the first row's score left empty
+    blank, no_step = pd.read_csv(path), pd.read_csv(path)
+    blank.loc[0, ["score", "return_mean"]] = None  # the first row's number left empty
+    no_step.loc[1, "step"] = None
     damaged = {
         "": "is not a table `eabc report` wrote \\(No columns to parse from file\\)",
         cut: "ends mid-line: the file was cut short",
-        blank.to_csv(index=False): "line 2 has no score",
+        blank.to_csv(index=False): "line 2 has no score or return_mean",
+        no_step.to_csv(index=False): "line 3 has no step",
         'run_id,step,score\n"runs/a,5000,3\n': "is not a table `eabc report` wrote",
     }
     assert list(pd.read_csv(out / "evaluations.csv").columns[:3]) == ["run_id", "step", "score"]

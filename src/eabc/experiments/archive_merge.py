@@ -54,19 +54,35 @@ def read_archive(path: str | Path) -> tuple[pd.DataFrame, pd.DataFrame]:
                 f"{path / name} lacks the column(s) {', '.join(lacking)}: it was not "
                 "written by `eabc report`"
             )
-        filled = [c for c in columns if c != "final_score"]  # a run cut short has none
-        empty = frame[filled].isna().any(axis=1)
-        if empty.any():
-            row = int(empty.to_numpy().argmax()) + 2  # the file's line: after the header, from 1
-            blank = [c for c in filled if pd.isna(frame[c].iloc[row - 2])]
-            raise ValueError(
-                f"{path / name} line {row} has no {', '.join(blank)}: the file is damaged; "
-                f"{_RESTORE}"
-            )
+        _check_filled(path / name, frame, [c for c in columns if c not in OPTIONAL])
     runs["variant"] = runs["variant"].astype(object).fillna("") if "variant" in runs else ""
     runs["source"], runs["archived"] = str(path), True
     columns = [*results.RUN_COLUMNS, "source", "archived"]
     return runs.reindex(columns=columns), evals.reindex(columns=results.EVAL_COLUMNS)
+
+
+OPTIONAL = {
+    "final_score": None,  # a run with no evaluation yet has none
+    "score": "return_mean",  # data without reference returns: the raw return instead
+}
+"""Columns a report may leave empty, each with the column that then holds the number (None:
+nothing need)."""
+
+
+def _check_filled(path: Path, frame: pd.DataFrame, required: list[str]) -> None:
+    """Refuse a table with a required cell empty, or a score missing where no return stands in
+    for it, naming the file's line."""
+    empty = frame[required].isna()
+    for column, instead in OPTIONAL.items():
+        if instead and column in frame and instead in frame:
+            empty[f"{column} or {instead}"] = frame[column].isna() & frame[instead].isna()
+    rows = empty.any(axis=1).to_numpy()
+    if rows.any():
+        row = int(rows.argmax())
+        blank = [c for c in empty.columns if empty[c].iloc[row]]
+        raise ValueError(
+            f"{path} line {row + 2} has no {', '.join(blank)}: the file is damaged; {_RESTORE}"
+        )  # line 1 is the header
 
 
 _RESTORE = "restore it (git checkout -- FILE) or write it again with `eabc report`"
