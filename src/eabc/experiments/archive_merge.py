@@ -65,8 +65,8 @@ OPTIONAL = {
     "final_score": None,  # a run with no evaluation yet has none
     "score": "return_mean",  # data without reference returns: the raw return instead
 }
-"""Columns a report may leave empty, each with the column that then holds the number (None:
-nothing need)."""
+"""Columns a report may leave empty, each with the column that then holds the number (None: no
+other is needed)."""
 
 
 def _check_filled(path: Path, frame: pd.DataFrame, required: list[str]) -> None:
