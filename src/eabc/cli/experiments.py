@@ -226,7 +226,6 @@ def run_sweep(cmd: Sweep) -> None:
 def _run_sweep(cmd: Sweep) -> None:
     import yaml  # noqa: PLC0415
 
-    from eabc.data import sources  # noqa: PLC0415
     from eabc.experiments import (  # noqa: PLC0415
         archive_merge,
         job_process,
@@ -244,9 +243,7 @@ def _run_sweep(cmd: Sweep) -> None:
         raise ValueError("--within works with the local backend only")
     root = paths.expand(cmd.root)
     runs = expand(sweep_spec(cmd))
-    for dataset in dict.fromkeys(run.dataset for run in runs):  # all, before the first run
-        sources.check_source(dataset)
-    run_status.check_names(runs, root)  # and every run's name, in a dry run too
+    run_status.check_startable(runs, root)  # every dataset and run name, in a dry run too
     if cmd.include:
         archived = run_status.archived_done(
             runs, [archive_merge.read_archive(d) for d in cmd.include]

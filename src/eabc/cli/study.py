@@ -93,7 +93,6 @@ def run_study(cmd: Study) -> None:
 
 
 def _study(cmd: Study, cache: str | None) -> None:
-    from eabc.data import sources  # noqa: PLC0415
     from eabc.experiments import archive_merge, planning, run_status, study  # noqa: PLC0415
     from eabc.experiments.spec import expand, groups, load_spec  # noqa: PLC0415
 
@@ -118,9 +117,7 @@ def _study(cmd: Study, cache: str | None) -> None:
             for runs, count in zip(slices, SMOKE_GROUPS)
         ]
     every = [r for runs in slices for r in runs]
-    for dataset in dict.fromkeys(r.dataset for r in every):  # all, before the first group
-        sources.check_source(dataset)
-    run_status.check_names(every, paths.expand(cmd.root))  # and every run's name
+    run_status.check_startable(every, paths.expand(cmd.root))  # before the first group
     if cmd.include:
         archives = [archive_merge.read_archive(d) for d in cmd.include]
         done = run_status.archived_done(every, archives)

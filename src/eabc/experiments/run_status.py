@@ -17,6 +17,7 @@ from typing import Any
 
 from eabc import paths, pytree
 from eabc.agents import get_algorithm
+from eabc.data import sources
 from eabc.experiments.spec import RunSpec, differences
 from eabc.training import checkpoint
 from eabc.training.directory import SUMMARY, lost_progress
@@ -65,6 +66,15 @@ def status_with_reason(run: RunSpec, root: Path) -> tuple[str, int, str]:
     if lost:
         return "broken", 0, f"{lost}; restore it, or delete the run directory to train it again"
     return "pending", 0, ""
+
+
+def check_startable(runs: list[RunSpec], root: Path) -> None:
+    """What a sweep or a study checks before its first run starts, and in a dry run: every
+    dataset loadable by its name or path alone (nothing made or read), then every run's name
+    (:func:`check_names`)."""
+    for dataset in dict.fromkeys(run.dataset for run in runs):
+        sources.check_source(dataset)
+    check_names(runs, root)
 
 
 def check_names(runs: list[RunSpec], root: Path) -> None:
