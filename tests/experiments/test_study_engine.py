@@ -61,11 +61,23 @@ def test_the_device_script_smoke_run_streams_finished_runs_that_report_reads(tmp
         "hopper-medium__eabc (2 runs)",
         "hopper-medium-replay__td3bc+1 (4 runs)",
     ]
+    # each compiled in its own thread: the first while its data were made, the others while
+    # the group before them trained
+    ahead = re.findall(
+        r"compiled ahead in \d+ s: (\S+ \(\d+ runs\))", (out / "study.log").read_text()
+    )
+    assert ahead == started
     again = tmp_path / "again"
     spec = sorted((ROOT / "docs" / "results" / "study-1m").glob("[0-9]*.yaml"))[0]
     argv = ["study", str(spec), "--smoke", "--out", str(again), "--root", str(tmp_path / "r2")]
     cli.main([*argv, "--include", str(out)])
     assert pd.read_csv(again / "runs.csv").empty  # all six were in OUT: none trained again
+
+
+def _scheduling_only(monkeypatch):
+    """A study whose groups' training is stubbed: no dataset made, no program compiled ahead."""
+    monkeypatch.setattr(study, "start_datasets", lambda *a: ({}, None))
+    monkeypatch.setattr(study, "compile_group", lambda *a: False)
 
 
 def _queue(tmp_path):
@@ -87,7 +99,7 @@ def test_a_group_starts_only_if_its_scaled_estimate_ends_before_the_deadline(tmp
         time.sleep(0.2)
 
     monkeypatch.setattr(job_process, "execute", execute)
-    monkeypatch.setattr(study, "start_datasets", lambda *a: ({}, None))
+    _scheduling_only(monkeypatch)
     report = study.run_study(
         [_queue(tmp_path)], tmp_path / "root", tmp_path / "out", time.time() + 30, echo=print
     )
@@ -103,7 +115,7 @@ def test_a_failed_group_is_named_and_the_queue_goes_on(tmp_path, monkeypatch):
             raise ValueError("no memory for it")
 
     monkeypatch.setattr(job_process, "execute", execute)
-    monkeypatch.setattr(study, "start_datasets", lambda *a: ({}, None))
+    _scheduling_only(monkeypatch)
     report = study.run_study(
         [_queue(tmp_path)], tmp_path / "root", tmp_path / "out", echo=lambda _: None
     )
@@ -120,7 +132,7 @@ def test_a_group_its_first_chunks_show_too_slow_starts_again_narrower(tmp_path, 
     the other three are tried, stopped, narrowed to one, and the last two fit; the slices keep
     their order (the second slice's group trains last)."""
     monkeypatch.setattr(planning, "estimate_seconds", lambda run, done=0: 0.01)
-    monkeypatch.setattr(study, "start_datasets", lambda *a: ({}, None))
+    _scheduling_only(monkeypatch)
     widths = []
 
     def execute(job, root, eval_workers=0, deadline=None):

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import logging
 import time
 from pathlib import Path
 from types import SimpleNamespace
@@ -22,7 +23,7 @@ from eabc.data.loaders import save_npz
 from eabc.experiments import job_process
 from eabc.experiments.spec import RunSpec, expand, groups, job_name
 from eabc.training import chunks, eval_pool, lifecycle, trainer
-from eabc.training.config import TrainConfig
+from eabc.training.config import TrainConfig, resolve_agent_config
 
 TRAIN = dict(
     steps=300,
@@ -227,3 +228,42 @@ def test_a_group_past_its_deadline_stops_after_its_first_chunks_and_resumes_as_i
         logs = [pd.read_csv(got.run_dir / "log.csv"), pd.read_csv(expected.run_dir / "log.csv")]
         assert [len(log) for log in logs] == [6, 6]  # a row every 100 steps, none twice
         pd.testing.assert_series_equal(logs[0]["score"], logs[1]["score"])
+
+
+def test_a_group_compiled_before_its_runs_exist_finds_its_program_in_the_cache(
+    tmp_path, pendulum_dataset, caplog, quick_chunks
+):
+    """``trainer.compile_first_chunk`` compiles, from settings and sizes alone, the very program
+    the group's first chunk runs: three EABC runs (two values of the traced p) on two datasets
+    of different lengths, and one TD3+BC run alone; their training then loads it from XLA's
+    persistent cache (the suite's own) rather than compiling it."""
+    caplog.set_level(logging.DEBUG, logger="jax._src.compiler")
+    files = []
+    for rows, name in ((4_321, "swing-long"), (3_000, "swing-short")):
+        files.append(str(tmp_path / f"{name}.npz"))
+        save_npz(_cut(pendulum_dataset, rows, name), files[-1])
+    train = tuple(sorted({**TRAIN, "steps": 100, "eval_interval": 100}.items()))
+    agent = {"num_critics": 2, "hidden_dims": (24, 24)}
+    groups_ = {
+        "_chunk_runs": [
+            RunSpec(files[s % 2], "eabc", s, tuple(sorted({**agent, "confidence_level": p}.items())), train)
+            for s, p in enumerate((0.5, 0.25, 0.5))
+        ],
+        "_chunk": [RunSpec(files[1], "td3bc", 0, (("hidden_dims", (24, 24)),), train)],
+    }  # fmt: skip
+    for program, job in groups_.items():
+        configs = [run.train_config() for run in job]
+        agent_configs = [
+            resolve_agent_config(c.algo, run.dataset, dict(run.overrides), c.steps)
+            for run, c in zip(job, configs)
+        ]
+        rows = [4_321, 3_000] if len(job) > 1 else [3_000]
+        caplog.clear()
+        trainer.compile_first_chunk(configs[0], agent_configs, 3, 1, 2.0, rows)
+        miss = f"PERSISTENT COMPILATION CACHE MISS for 'jit_{program}'"
+        assert any(miss in m for m in caplog.messages), "a new program: compiled here"
+        caplog.clear()
+        job_process.execute([r.to_json() for r in job], str(tmp_path / program))
+        hit = f"Persistent compilation cache hit for 'jit_{program}'"
+        assert any(hit in m for m in caplog.messages), caplog.messages
+        assert not any(miss in m for m in caplog.messages)

@@ -7,7 +7,8 @@ algorithm's traced settings: :func:`eabc.experiments.spec.groups`) is one compil
 (``vmap``-ped, :func:`eabc.training.trainer.train_runs`), the groups one after another, so one
 program holds the accelerator's memory at a time (XLA's pre-allocation is turned off by the
 command). The built-in datasets the queue names are made by a pool of processes while the first
-groups train. A group starts only if its estimate ends before the deadline; the estimates are the
+groups train, and a thread compiles each new group's program ahead (:class:`Compiler`): the first
+while its data are made, each next one while the group before it trains. A group starts only if its estimate ends before the deadline; the estimates are the
 contract's reference-host hints scaled by how long the groups trained so far took against theirs.
 Once started, a group's first chunks measure its real speed: if the rest would end after the
 deadline it stops there, and its first runs, as many as that speed says fit the time left, start
@@ -22,6 +23,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import json
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -29,12 +31,13 @@ from typing import Any
 
 import pandas as pd
 
-from eabc import paths, timing
-from eabc.data import generate, sources
+from eabc import compile_cache, evaluation, paths, timing
+from eabc.data import generate, sources, tasks
 from eabc.experiments import job_process, planning, results, run_status
 from eabc.experiments.spec import RunSpec, job_name
 from eabc.training import eval_pool, trainer
 from eabc.training.checkpoint import atomic_write
+from eabc.training.config import resolve_agent_config
 from eabc.training.trainer import PastDeadline
 
 OUT_FILES = (
@@ -52,17 +55,19 @@ def _write_atomic(path: Path, text: str) -> None:
 
 
 class StudyLog:
-    """A line per stage, to the terminal (or a log) and to ``OUT/study.log``."""
+    """A line per stage, to the terminal (or a log) and to ``OUT/study.log``; from any thread."""
 
     def __init__(self, out: Path, echo: Callable[[str], None] = print):
         self.path, self.echo, self.lines = out / "study.log", echo, []
         self.started = time.time()
+        self.lock = threading.Lock()
 
     def __call__(self, text: str) -> None:
-        line = f"[{time.time() - self.started:7.1f} s] {text}"
-        self.lines.append(line)
-        self.echo(line)
-        _write_atomic(self.path, "\n".join(self.lines) + "\n")
+        with self.lock:  # each write holds every line before it
+            line = f"[{time.time() - self.started:7.1f} s] {text}"
+            self.lines.append(line)
+            self.echo(line)
+            _write_atomic(self.path, "\n".join(self.lines) + "\n")
 
 
 def export(root: Path, out: Path) -> int:
@@ -128,6 +133,68 @@ def start_datasets(
     return futures, pool
 
 
+def compile_group(job: list[RunSpec], size: int | None) -> bool:
+    """Compile the first chunk's program of a group of new runs on built-in datasets before its
+    data are made (:func:`eabc.training.trainer.compile_first_chunk`, sized by the recipe's
+    rows or ``size``); False, compiling nothing, for a group of other data."""
+    names = list(dict.fromkeys(run.dataset for run in job))
+    if any(sources.kind(name) != "builtin" for name in names):
+        return False
+    configs = [run.train_config() for run in job]
+    agent_configs = [
+        resolve_agent_config(c.algo, run.dataset, dict(run.overrides), c.steps)
+        for run, c in zip(job, configs)
+    ]
+    env_id = configs[0].env or tasks.env_info(tasks.parse_task(names[0])).env_id
+    env = evaluation.make_env(env_id)
+    try:
+        (obs_dim,), (act_dim,) = env.observation_space.shape, env.action_space.shape
+        max_action = float(env.action_space.high[0])
+    finally:
+        env.close()
+    rows = [size or generate.default_size(name) for name in names]
+    trainer.compile_first_chunk(configs[0], agent_configs, obs_dim, act_dim, max_action, rows)
+    return True
+
+
+class Compiler:
+    """Compiles groups' programs ahead, one at a time in a thread of their own, into XLA's
+    persistent cache: the first group's while its data are made, each next one while the group
+    before it trains (on an accelerator the host's cores are otherwise idle then)."""
+
+    def __init__(self, root: Path, size: int | None, log):
+        self.root, self.size, self.log = root, size, log
+        self.pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="compile")
+        self.futures: dict[tuple, concurrent.futures.Future] = {}
+
+    def ahead(self, job: list[RunSpec]) -> None:
+        """Start compiling ``job``'s program, if its runs are new and it is not begun yet."""
+        ids = tuple(run.run_id for run in job)
+        if ids in self.futures or any(
+            run_status.status(run, self.root)[0] != "pending" for run in job
+        ):
+            return
+        self.futures[ids] = self.pool.submit(self._compile, job)
+
+    def _compile(self, job: list[RunSpec]) -> None:
+        label = f"{job_name(job)} ({len(job)} run{'s' * (len(job) > 1)})"
+        started = time.time()
+        try:
+            if compile_group(job, self.size):
+                self.log(f"compiled ahead in {time.time() - started:.0f} s: {label}")
+        except Exception as error:  # the group's own first chunk compiles it, or says what fails
+            self.log(f"not compiled ahead: {label}: {type(error).__name__}: {error}")
+
+    def wait(self, job: list[RunSpec]) -> None:
+        """Let ``job``'s compilation, if begun, end: its first chunk then finds the program."""
+        future = self.futures.get(tuple(run.run_id for run in job))
+        if future is not None:
+            future.result()
+
+    def close(self) -> None:
+        self.pool.shutdown(wait=False, cancel_futures=True)
+
+
 def algorithm_major(runs: list[RunSpec]) -> list[RunSpec]:
     """``runs`` algorithm by algorithm, in the order of each algorithm's first run, otherwise as
     given (a spec's expansion lists them dataset by dataset): a slice trains its first algorithm
@@ -183,6 +250,12 @@ def run_study(
     job_list = [job for runs in slices for job in planning.jobs(runs, root, "vmap")]
     count = sum(len(job) for job in job_list)
     log(f"{count} runs in {len(job_list)} groups to train in {root}")
+    cache = None
+    if job_list:
+        cache = compile_cache.enable(cache_root=job_list[0][0].train_config().cache_dir)
+    compiler = Compiler(root, dataset_size, log) if cache is not None else None
+    if compiler is not None and job_list:
+        compiler.ahead(job_list[0])  # while its data are made
     futures, pool = start_datasets(job_list, data_workers, dataset_size, log)
     evaluators = eval_pool.EvaluationPool(eval_workers) if eval_workers else 0
     took: dict[str, list[tuple[float, float]]] = {}  # algo -> (actual, estimated) seconds
@@ -202,6 +275,10 @@ def run_study(
             for name in dict.fromkeys(run.dataset for run in job):
                 if name in futures:
                     futures[name].result()  # its datasets, made meanwhile
+            if compiler is not None:
+                compiler.wait(job)
+                if job_list:
+                    compiler.ahead(job_list[0])  # the next group, while this one trains
             log(f"training {label} (~{guess:.0f} s by the estimates so far)")
             started = time.time()
             try:
@@ -232,6 +309,8 @@ def run_study(
             pool.shutdown(wait=False, cancel_futures=True)
         if evaluators:
             evaluators.close(finished=False)
+        if compiler is not None:
+            compiler.close()
     report["exported"] = export(root, out)
     log(
         f"finished {len(report['finished'])} runs, skipped {len(report['skipped'])} groups, "

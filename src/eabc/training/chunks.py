@@ -92,6 +92,14 @@ def fast_compile() -> bool:
     return os.environ.get(FAST_COMPILE_ENV, "").strip().lower() in ("1", "true", "yes", "on")
 
 
+def _static(update, batch_size: int, length: int, period: int | None, start: int) -> dict:
+    """The compile-time arguments of every chunk program."""
+    return dict(
+        update=update, batch_size=batch_size, length=length, unroll=1 if fast_compile() else 2,
+        period=period, phase=start % period if period else 0,
+    )  # fmt: skip
+
+
 def _chunk(
     agent_state, key, data: Batch, update, batch_size: int, length: int, unroll: int,
     period: int | None = None, phase: int = 0,
@@ -212,11 +220,8 @@ def train_chunk(
     compiled per update, batch size and length. ``period``: the algorithm's ``delayed_period``
     for its config, if it has one (``update`` then takes ``delayed``), and ``start`` the steps
     the state has taken, so that the delayed steps fall where they would one step at a time."""
-    fast = fast_compile()
-    return _PROGRAMS[fast][0](
-        agent_state, key, data, update=update, batch_size=batch_size, length=length,
-        unroll=1 if fast else 2, period=period, phase=start % period if period else 0,
-    )  # fmt: skip
+    static = _static(update, batch_size, length, period, start)
+    return _PROGRAMS[fast_compile()][0](agent_state, key, data, **static)
 
 
 def train_chunk_seeds(
@@ -225,17 +230,25 @@ def train_chunk_seeds(
 ):  # fmt: skip
     """:func:`train_chunk` for a stack of seeds (leading axis of states and keys), one program;
     every seed is at step ``start``."""
-    fast = fast_compile()
-    return _PROGRAMS[fast][1](
-        agent_states, keys, data, update=update, batch_size=batch_size, length=length,
-        unroll=1 if fast else 2, period=period, phase=start % period if period else 0,
-    )  # fmt: skip
+    static = _static(update, batch_size, length, period, start)
+    return _PROGRAMS[fast_compile()][1](agent_states, keys, data, **static)
+
+
+def padded_rows(rows: int) -> int:
+    """The length :func:`stack_data` pads datasets of at most ``rows`` rows to: ``rows`` rounded
+    up to a multiple of a sixteenth of its highest power of two (1,000,000 -> 1,015,808), at most
+    6% more. So a program's shape can be known before its data exist (from the size a recipe
+    makes; an algorithm that drops the rows without a next action rarely leaves that multiple),
+    and is compiled while they are made (:func:`compile_chunk`)."""
+    block = 1 << max(0, int(rows).bit_length() - 5)
+    return -(-int(rows) // block) * block
 
 
 def stack_data(datas: list[Batch]) -> Batch:
-    """Device datasets of one shape but any lengths as one ``[datasets, longest, ...]`` batch
-    for :func:`train_chunk_runs`, the shorter ones padded with zeros (never sampled)."""
-    longest = max(data.rewards.shape[0] for data in datas)
+    """Device datasets of one shape but any lengths as one ``[datasets, rows, ...]`` batch for
+    :func:`train_chunk_runs`, padded with zeros (never sampled) to :func:`padded_rows` of the
+    longest."""
+    longest = padded_rows(max(data.rewards.shape[0] for data in datas))
 
     def stack(*xs):
         return jnp.stack(
@@ -255,13 +268,29 @@ def train_chunk_runs(
     (:func:`stack_data`), and trains with ``update``'s config but for the settings ``values``
     holds, numbers traced per run (the algorithm's ``traced_settings``). Every run is at step
     ``start``; each equals the same run trained alone to float tolerance."""
-    fast = fast_compile()
-    return _PROGRAMS[fast][2](
+    static = _static(update, batch_size, length, period, start)
+    return _PROGRAMS[fast_compile()][2](
         agent_states, keys, datas, jnp.asarray(which, jnp.int32), jnp.asarray(sizes, jnp.int32),
-        {name: jnp.asarray(v, jnp.float32) for name, v in values.items()}, update=update,
-        batch_size=batch_size, length=length, unroll=1 if fast else 2, period=period,
-        phase=start % period if period else 0,
+        {name: jnp.asarray(v, jnp.float32) for name, v in values.items()}, **static,
     )  # fmt: skip
+
+
+def compile_chunk(
+    agent_states, keys, data, width: int | None, names, update, batch_size: int, length: int,
+    period: int | None = None, start: int = 0,
+):  # fmt: skip
+    """Compile, without running it, the program that :func:`train_chunk` (``width`` None) or
+    :func:`train_chunk_runs` (``width`` runs; ``names``: the traced settings its ``values``
+    holds) runs on arguments of these shapes (trees of ``jax.ShapeDtypeStruct``); returns the
+    compiled program. Where XLA's persistent cache is on (:mod:`eabc.compile_cache`), the real
+    call finds it there, however its ``update`` was made."""
+    static = _static(update, batch_size, length, period, start)
+    if width is None:
+        return _PROGRAMS[fast_compile()][0].lower(agent_states, keys, data, **static).compile()
+    each = jax.ShapeDtypeStruct((width,), jnp.int32)
+    values = {name: jax.ShapeDtypeStruct((width,), jnp.float32) for name in names}
+    program = _PROGRAMS[fast_compile()][2]
+    return program.lower(agent_states, keys, data, each, each, values, **static).compile()
 
 
 def summarize_metrics(
