@@ -400,8 +400,8 @@ def compile_first_chunk(
     config, agent_configs: list, obs_dim: int, act_dim: int, max_action: float, rows: list[int]
 ) -> None:
     """Compile the program of the first chunk :func:`train_runs` trains new runs in, before the
-    runs or their data exist: runs of ``config``'s settings (the first run's) with an agent config
-    each, on datasets (one per entry of ``rows``, its number of rows) of these sizes. Where XLA's
+    runs or their data exist: runs of ``config``'s settings (the first run's), an agent config
+    each, on the datasets whose lengths ``rows`` gives (one entry per dataset). Where XLA's
     persistent cache is on (:mod:`eabc.compile_cache`), their first chunk then loads it from
     there: ``eabc study`` compiles a group while its data are made or the group before it
     trains. Datasets of other lengths (rows an algorithm drops, e.g. those without a next
