@@ -233,7 +233,7 @@ def test_a_group_past_its_deadline_stops_after_its_first_chunks_and_resumes_as_i
 def test_a_group_compiled_before_its_runs_exist_finds_its_program_in_the_cache(
     tmp_path, pendulum_dataset, caplog, quick_chunks
 ):
-    """``trainer.compile_first_chunk`` compiles, from settings and sizes alone, the very program
+    """``chunks.compile_first_chunk`` compiles, from settings and sizes alone, the very program
     the group's first chunk runs: three EABC runs (two values of the traced p) on two datasets
     of different lengths, and one TD3+BC run alone; their training then loads it from XLA's
     persistent cache (the suite's own) rather than compiling it."""
@@ -259,7 +259,7 @@ def test_a_group_compiled_before_its_runs_exist_finds_its_program_in_the_cache(
         ]
         rows = [4_321, 3_000] if len(job) > 1 else [3_000]
         caplog.clear()
-        trainer.compile_first_chunk(configs[0], agent_configs, 3, 1, 2.0, rows)
+        chunks.compile_first_chunk(configs[0], agent_configs, 3, 1, 2.0, rows)
         miss = f"PERSISTENT COMPILATION CACHE MISS for 'jit_{program}'"
         assert any(miss in m for m in caplog.messages), "a new program: compiled here"
         caplog.clear()

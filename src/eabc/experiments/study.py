@@ -35,7 +35,7 @@ from eabc import compile_cache, evaluation, paths, timing
 from eabc.data import generate, sources, tasks
 from eabc.experiments import job_process, planning, results, run_status
 from eabc.experiments.spec import RunSpec, job_name
-from eabc.training import eval_pool, trainer
+from eabc.training import chunks, eval_pool, trainer
 from eabc.training.checkpoint import atomic_write
 from eabc.training.config import resolve_agent_config
 from eabc.training.trainer import PastDeadline
@@ -135,7 +135,7 @@ def start_datasets(
 
 def compile_group(job: list[RunSpec], size: int | None) -> bool:
     """Compile the first chunk's program of a group of new runs on built-in datasets before its
-    data are made (:func:`eabc.training.trainer.compile_first_chunk`, sized by the recipe's
+    data are made (:func:`eabc.training.chunks.compile_first_chunk`, sized by the recipe's
     rows or ``size``); False, compiling nothing, for a group of other data."""
     names = list(dict.fromkeys(run.dataset for run in job))
     if any(sources.kind(name) != "builtin" for name in names):
@@ -153,7 +153,7 @@ def compile_group(job: list[RunSpec], size: int | None) -> bool:
     finally:
         env.close()
     rows = [size or generate.default_size(name) for name in names]
-    trainer.compile_first_chunk(configs[0], agent_configs, obs_dim, act_dim, max_action, rows)
+    chunks.compile_first_chunk(configs[0], agent_configs, obs_dim, act_dim, max_action, rows)
     return True
 
 

@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from eabc import programs
+from eabc.agents import get_algorithm
 from eabc.agents.common import Batch, BatchWithNextActions
 from eabc.agents.contract import CRITIC_METRICS
 from eabc.data.dataset import Dataset, DatasetError, Normalizer
@@ -291,6 +292,59 @@ def compile_chunk(
     values = {name: jax.ShapeDtypeStruct((width,), jnp.float32) for name in names}
     program = _PROGRAMS[fast_compile()][2]
     return program.lower(agent_states, keys, data, each, each, values, **static).compile()
+
+
+def differing(names, agent_configs: list) -> dict[str, list]:
+    """The settings among ``names`` that are not the same in every config, a value per config."""
+    return {
+        name: [getattr(c, name) for c in agent_configs]
+        for name in names
+        if len({getattr(c, name) for c in agent_configs}) > 1
+    }
+
+
+def compile_first_chunk(
+    config, agent_configs: list, obs_dim: int, act_dim: int, max_action: float, rows: list[int]
+) -> None:
+    """Compile the program of the first chunk that :func:`eabc.training.trainer.train_runs`
+    trains new runs in, before the runs or their data exist: runs of ``config``'s settings (the
+    first run's), an agent config each, on the datasets whose lengths ``rows`` gives (one entry
+    per dataset), as the trainer lays them out (:func:`stack_data`). Where XLA's
+    persistent cache is on (:mod:`eabc.compile_cache`), their first chunk then loads it from
+    there: ``eabc study`` compiles a group while its data are made or the group before it
+    trains. Datasets of other lengths (rows an algorithm drops, e.g. those without a next
+    action) ask for another program, which their first chunk compiles as usual."""
+    algorithm = get_algorithm(config.algo)
+    key = jax.ShapeDtypeStruct((2,), jnp.uint32)
+    states = [
+        jax.eval_shape(lambda k, c=c: algorithm.init(k, obs_dim, act_dim, c), key)
+        for c in agent_configs
+    ]
+    width = len(states)
+    update = functools.partial(algorithm.update, config=agent_configs[0], max_action=max_action)
+    period = algorithm.delayed_period(agent_configs[0]) if algorithm.delayed_period else None
+    length = min(config.log_interval, config.steps)
+    if width == 1:
+        lead, names = (rows[0],), ()
+    else:
+        lead = (len(rows), padded_rows(max(rows)))
+        names = tuple(differing(algorithm.traced_settings, agent_configs))
+        stack = lambda *xs: jnp.stack(xs)  # noqa: E731
+        states = [jax.eval_shape(lambda *xs: jax.tree.map(stack, *xs), *states)]
+        key = jax.eval_shape(stack, *[key] * width)
+    fields = {"observations": obs_dim, "actions": act_dim, "rewards": None,
+              "next_observations": obs_dim, "dones": None}  # fmt: skip
+    if algorithm.next_actions:
+        fields["next_actions"] = act_dim
+    shaped = {
+        name: jax.ShapeDtypeStruct(lead + ((size,) if size else ()), jnp.float32)
+        for name, size in fields.items()
+    }
+    data = (BatchWithNextActions if algorithm.next_actions else Batch)(**shaped)
+    compile_chunk(
+        states[0], key, data, None if width == 1 else width, names, update, config.batch_size,
+        length, period,
+    )  # fmt: skip
 
 
 def summarize_metrics(
