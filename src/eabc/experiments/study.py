@@ -8,8 +8,9 @@ algorithm's traced settings: :func:`eabc.experiments.spec.groups`) is one compil
 program holds the accelerator's memory at a time (XLA's pre-allocation is turned off by the
 command). The built-in datasets the queue names are made by a pool of processes while the first
 groups train, and a thread compiles each new group's program ahead (:class:`Compiler`): the first
-while its data are made, each next one while the group before it trains. A group starts only if its estimate ends before the deadline; the estimates are the
-contract's reference-host hints scaled by how long the groups trained so far took against theirs.
+while its data are made, each next one while the group before it trains. A group starts only if
+its estimate ends before the deadline; the estimates are the contract's reference-host hints
+scaled by how long the groups trained so far took against theirs.
 Once started, a group's first chunks measure its real speed: if the rest would end after the
 deadline it stops there, and its first runs, as many as that speed says fit the time left, start
 again as a narrower program (:func:`fitting`); the others wait for their turn behind them.
