@@ -31,9 +31,10 @@ class Study:
     datasets of one environment) train as one vectorised program, one program at a time (the
     GPU's memory is not pre-allocated); the queue's datasets are made by background processes
     while the first groups train, and each group's program is compiled in a thread of its own
-    while its data are made or the group before it trains; a group starts only if its estimate (scaled by how long the
-    groups so far took) ends before --within, and one whose first chunks show it would end later
-    stops and starts again with as many of its runs as fit the time left; after each group,
+    while its data are made or the group before it trains; a group starts only if its estimate
+    (scaled by how long the groups so far took) ends before --within, and one whose first chunks
+    show it would end later stops and starts again with as many of its runs as fit the time
+    left; after each group,
     every finished run (log rows, evaluations, summary, provenance; never checkpoints) is written
     to --out in five files. `eabc report ROOT --include OUT` reports them; a later study given
     `--include OUT` skips them.

@@ -251,11 +251,9 @@ def run_study(
     job_list = [job for runs in slices for job in planning.jobs(runs, root, "vmap")]
     count = sum(len(job) for job in job_list)
     log(f"{count} runs in {len(job_list)} groups to train in {root}")
-    cache = None
-    if job_list:
-        cache = compile_cache.enable(cache_root=job_list[0][0].train_config().cache_dir)
-    compiler = Compiler(root, dataset_size, log) if cache is not None else None
-    if compiler is not None and job_list:
+    compiler = None  # none without the on-disk cache: a program compiled ahead is kept there
+    if job_list and compile_cache.enable(cache_root=job_list[0][0].train_config().cache_dir):
+        compiler = Compiler(root, dataset_size, log)
         compiler.ahead(job_list[0])  # while its data are made
     futures, pool = start_datasets(job_list, data_workers, dataset_size, log)
     evaluators = eval_pool.EvaluationPool(eval_workers) if eval_workers else 0
