@@ -1,11 +1,13 @@
 """Evaluation: episodes side by side equal the episodes one by one, batched actions equal single
-ones, AntMaze's goals are fresh at every evaluation, and the thinned evaluation schedule."""
+ones, AntMaze's goals are fresh at every evaluation, the thinned evaluation schedule, and an
+environment's sizes read without keeping it open."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
+from eabc import evaluation
 from eabc.data.dataset import Normalizer
 from eabc.evaluation import Evaluator, Policy, _near_rounding_boundary, make_env
 from eabc.training.config import FINAL_EVALUATIONS, TrainConfig
@@ -161,3 +163,20 @@ def test_a_sweep_estimates_the_evaluations_its_schedule_makes():
     assert seconds("every", 500_000) - seconds("thin", 500_000) == pytest.approx(
         (100 - 19) * 10 * episode
     )
+
+
+@pytest.mark.parametrize(
+    "env_id, sizes", [("Hopper-v4", (11, 3, 1.0)), ("HalfCheetah-v4", (17, 6, 1.0))]
+)
+def test_space_sizes_reads_an_environments_sizes_and_closes_it(monkeypatch, env_id, sizes):
+    closed = []
+
+    def make_watched(env_id):
+        env = make_env(env_id)
+        close = env.close
+        env.close = lambda: closed.append(env_id) or close()
+        return env
+
+    monkeypatch.setattr(evaluation, "make_env", make_watched)
+    assert evaluation.space_sizes(env_id) == sizes
+    assert closed == [env_id]

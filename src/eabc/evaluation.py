@@ -85,6 +85,17 @@ def make_env(env_id: str):
         ) from error
 
 
+def space_sizes(env_id: str) -> tuple[int, int, float]:
+    """``env_id``'s observation size, action size and largest action, from an environment made
+    for the purpose and closed again."""
+    env = make_env(env_id)
+    try:
+        (obs_dim,), (act_dim,) = env.observation_space.shape, env.action_space.shape
+        return obs_dim, act_dim, float(env.action_space.high[0])
+    finally:
+        env.close()
+
+
 def check_spaces(env, dataset: Dataset) -> None:
     """Raise a clear error if the dataset cannot have come from ``env``."""
     antmaze = tasks.antmaze_env_ids()

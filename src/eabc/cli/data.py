@@ -288,13 +288,12 @@ def _check_making_memory(cmd: DataMake) -> None:
     """Refuse a ``--size`` whose arrays (float32 observations, next observations, actions,
     rewards, terminals and timeouts) would not fit in the memory free, before minutes of making."""
     from eabc.data import generate, tasks  # noqa: PLC0415
-    from eabc.evaluation import make_env  # noqa: PLC0415
+    from eabc.evaluation import space_sizes  # noqa: PLC0415
 
     info = tasks.env_info(tasks.parse_task(cmd.name))
     if cmd.size is None or info is None or cmd.name not in generate.builtin_names():
         return  # the default sizes fit; an unknown name is refused by make, naming it
-    env = make_env(info.env_id)
-    obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
+    obs_dim, act_dim, _ = space_sizes(info.env_id)
     need = cmd.size * 4 * (2 * obs_dim + act_dim + 3)
     ranges.check_memory([("--size", str(cmd.size), f"{cmd.name}'s arrays", need)])
 

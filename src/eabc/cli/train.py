@@ -183,7 +183,7 @@ def train_plan(cmd: Train) -> dict[str, str]:
     from eabc import timing  # noqa: PLC0415
     from eabc.agents import get_algorithm  # noqa: PLC0415
     from eabc.data import generate, sources  # noqa: PLC0415
-    from eabc.evaluation import make_env  # noqa: PLC0415
+    from eabc.evaluation import space_sizes  # noqa: PLC0415
     from eabc.experiments.planning import estimate_seconds  # noqa: PLC0415
     from eabc.experiments.spec import TRAIN_FIELDS, RunSpec  # noqa: PLC0415
     from eabc.training import lifecycle, trainer  # noqa: PLC0415
@@ -216,8 +216,7 @@ def train_plan(cmd: Train) -> dict[str, str]:
             check_evaluation_env(config)  # --env against the task's shapes, as training will
             size = generate.default_size(config.dataset)
             dataset_name, env_id = config.dataset, None
-            spaces = make_env(_task_env(config.dataset))
-            shape = size, spaces.observation_space.shape[0], spaces.action_space.shape[0]
+            shape = size, *space_sizes(_task_env(config.dataset))[:2]
             took = generate.making_time(config.dataset)
             data = f"{config.dataset}: made first into {path} ({size:,} transitions, {took})"
         else:

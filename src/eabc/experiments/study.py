@@ -147,12 +147,7 @@ def compile_group(job: list[RunSpec], size: int | None) -> bool:
         for run, c in zip(job, configs)
     ]
     env_id = configs[0].env or tasks.env_info(tasks.parse_task(names[0])).env_id
-    env = evaluation.make_env(env_id)
-    try:
-        (obs_dim,), (act_dim,) = env.observation_space.shape, env.action_space.shape
-        max_action = float(env.action_space.high[0])
-    finally:
-        env.close()
+    obs_dim, act_dim, max_action = evaluation.space_sizes(env_id)
     rows = [size or generate.default_size(name) for name in names]
     chunks.compile_first_chunk(configs[0], agent_configs, obs_dim, act_dim, max_action, rows)
     return True
