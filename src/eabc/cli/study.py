@@ -34,10 +34,9 @@ class Study:
     while its data are made or the group before it trains; a group starts only if its estimate
     (scaled by how long the groups so far took) ends before --within, and one whose first chunks
     show it would end later stops and starts again with as many of its runs as fit the time
-    left; after each group,
-    every finished run (log rows, evaluations, summary, provenance; never checkpoints) is written
-    to --out in five files. `eabc report ROOT --include OUT` reports them; a later study given
-    `--include OUT` skips them.
+    left; after each group, every finished run (log rows, evaluations, summary, provenance;
+    never checkpoints) is written to --out in five files. `eabc report ROOT --include OUT`
+    reports them; a later study given `--include OUT` skips them.
     """
 
     specs: Annotated[
