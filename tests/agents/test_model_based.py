@@ -158,8 +158,17 @@ def test_model_selection_is_not_decided_by_the_output_with_the_largest_spread():
     config = dynamics.DynamicsConfig(
         num_members=3, num_elites=2, hidden_dims=(32, 32), batch_size=64, max_epochs=20
     )
-    params, elites, info = dynamics.fit(jax.random.PRNGKey(0), data, config)
+    compiles = []
+    listener = lambda name, secs, **_: compiles.append(name)  # noqa: E731
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        params, elites, info = dynamics.fit(jax.random.PRNGKey(0), data, config)
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
     assert info["model_epochs"] == 20, info  # the cap, not the patience
+    # About ten programs for the whole fit (shapes no other test fits; the key and XLA's option
+    # probe among them), not one per operation (some 90)
+    assert 0 < compiles.count("/jax/core/compile/backend_compile_duration") <= 12, compiles
     mean, _ = dynamics.predict(params, test.observations, test.actions, config.activation)
     y = np.asarray(dynamics.targets(test))[:, 1:]
     error = ((np.asarray(mean)[np.asarray(elites), :, 1:] - y) ** 2).mean((0, 1)) / y.var(0)

@@ -46,7 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from eabc import networks, pytree
+from eabc import networks, programs, pytree
 from eabc.agents.common import Batch, apply_gradients
 from eabc.agents.contract import PretrainProgress
 from eabc.ranges import Count, LearningRate, NonNegativeCount, Settings, Weight, Widths
@@ -166,13 +166,54 @@ def heldout_error(
     return error.mean(axis=(1, 2))
 
 
+_heldout_error = jax.jit(heldout_error, static_argnames="activation")
+
+
 MIN_VARIANCE = 1e-8
 """Floor of an output's held-out variance in :func:`heldout_error` (a constant output)."""
 
 
+def _prepare(key: jax.Array, data: Batch, config: DynamicsConfig) -> dict:
+    """What a fit draws and computes before its first epoch: the held-out split, the members'
+    bootstrap samples of the training split, the targets, the initial ensemble and optimiser.
+    One program, built as those that run once are (:data:`eabc.networks.INIT_COMPILE_OPTIONS`);
+    drawn op by op, each operation compiled a program of its own, some 90 per fit."""
+    size = data.rewards.shape[0]
+    obs_dim, act_dim = data.observations.shape[1], data.actions.shape[1]
+    split_key, init_key, boot_key, epoch_key = jax.random.split(key, 4)
+    permutation = jax.random.permutation(split_key, size)
+    num_holdout = min(int(size * config.holdout_ratio), config.max_holdout)
+    holdout, train = permutation[:num_holdout], permutation[num_holdout:]
+    y = targets(data)
+    y_held = y[holdout]
+    shape = (config.num_members, train.shape[0])
+    params = init(init_key, obs_dim, act_dim, config)
+    return {
+        "epoch_key": epoch_key,
+        "held": jax.tree.map(lambda x: x[holdout], data),
+        "y": y,
+        "y_held": y_held,
+        "bootstrap": train[jax.random.randint(boot_key, shape, 0, train.shape[0])],
+        "params": params,
+        "opt_state": optax.adam(config.lr).init(params),
+        "variance": jnp.maximum(y_held.var(axis=0), MIN_VARIANCE),
+        "baseline": ((y_held - y[train].mean(axis=0)) ** 2).mean(),
+    }
+
+
+_prepare_compiled = programs.Program(
+    _prepare, networks.INIT_COMPILE_OPTIONS, static_argnames=("config",)
+)
+
+
 @functools.partial(jax.jit, static_argnames=("config",))
-def _epoch(params, opt_state, order, data: Batch, y, config: DynamicsConfig):
-    """One pass over the training split: ``order: [K, steps, batch]`` indices per member."""
+def _epoch(params, opt_state, epoch_key, epoch, bootstrap, data: Batch, y, config: DynamicsConfig):
+    """One pass over the training split, in an order of its own for every member (drawn from
+    ``epoch_key`` and ``epoch``) through the member's bootstrap sample."""
+    k, steps = config.num_members, max(bootstrap.shape[1] // config.batch_size, 1)
+    keys = jax.random.split(jax.random.fold_in(epoch_key, epoch), k)
+    shuffle = jax.vmap(jax.random.permutation)(keys, bootstrap)
+    order = shuffle[:, : steps * config.batch_size].reshape(k, steps, config.batch_size)
     tx = optax.adam(config.lr)
 
     def step(carry, index):
@@ -202,22 +243,11 @@ def fit(
     """
     size = data.rewards.shape[0]
     obs_dim, act_dim = data.observations.shape[1], data.actions.shape[1]
-    split_key, init_key, boot_key, epoch_key = jax.random.split(key, 4)
-    permutation = jax.random.permutation(split_key, size)
-    num_holdout = min(int(size * config.holdout_ratio), config.max_holdout)
-    holdout, train = permutation[:num_holdout], permutation[num_holdout:]
-    y = targets(data)
-    held = jax.tree.map(lambda x: x[holdout], data)
-    y_held = y[holdout]
-    k = config.num_members
-    bootstrap = train[jax.random.randint(boot_key, (k, train.shape[0]), 0, train.shape[0])]
-    steps = max(train.shape[0] // config.batch_size, 1)
-
-    params = init(init_key, obs_dim, act_dim, config)
-    opt_state = optax.adam(config.lr).init(params)
-    variance = jnp.maximum(y_held.var(axis=0), MIN_VARIANCE)
-    error = jax.jit(
-        functools.partial(heldout_error, activation=config.activation, variance=variance)
+    start = _prepare_compiled(key, data, config)
+    held, y, y_held = start["held"], start["y"], start["y_held"]
+    params, opt_state = start["params"], start["opt_state"]
+    error = functools.partial(
+        _heldout_error, activation=config.activation, variance=start["variance"]
     )
     best = np.asarray(error(params, held.observations, held.actions, y_held))
     best_params, since, epoch, losses = params, 0, 0, []
@@ -235,15 +265,13 @@ def fit(
     elif saved is not None and log is not None:
         log("dynamics: the saved fit is of other settings or data; fitting from the start")
     while since <= config.patience and (config.max_epochs is None or epoch < config.max_epochs):
-        shuffle = jax.vmap(jax.random.permutation)(
-            jax.random.split(jax.random.fold_in(epoch_key, epoch), k), bootstrap
+        params, opt_state, loss = _epoch(
+            params, opt_state, start["epoch_key"], epoch, start["bootstrap"], data, y, config
         )
-        order = shuffle[:, : steps * config.batch_size].reshape(k, steps, config.batch_size)
-        params, opt_state, loss = _epoch(params, opt_state, order, data, y, config)
         current = np.asarray(error(params, held.observations, held.actions, y_held))
         improved = (best - current) / np.maximum(best, 1e-12) > IMPROVEMENT
         best = np.where(improved, current, best)
-        best_params = select_members(jnp.asarray(improved), params, best_params)
+        best_params = _select_members(jnp.asarray(improved), params, best_params)
         since = 0 if improved.any() else since + 1
         epoch += 1
         losses.append(float(loss))
@@ -257,8 +285,8 @@ def fit(
             log(f"dynamics epoch {epoch}: train loss {loss:.4f}, held-out error {np.sort(current)}")
     final = np.asarray(error(best_params, held.observations, held.actions, y_held))
     elites = jnp.asarray(np.argsort(final)[: config.num_elites], jnp.int32)
-    mse = heldout_error(best_params, held.observations, held.actions, y_held, config.activation)
-    baseline = float(((y_held - y[train].mean(axis=0)) ** 2).mean())
+    mse = _heldout_error(best_params, held.observations, held.actions, y_held, config.activation)
+    baseline = float(start["baseline"])
     info = {
         "model_epochs": epoch,
         "model_heldout_error": float(final[np.asarray(elites)].mean()),
@@ -330,3 +358,6 @@ def disagreement(mean: jax.Array) -> jax.Array:
 def max_std_norm(logvar: jax.Array) -> jax.Array:
     """MOPO's penalty ``max_k |std_k(s, a)|_2`` (``penalty_learned_var``), ``[B]``."""
     return jnp.sqrt(jnp.exp(logvar).sum(-1)).max(axis=0)
+
+
+_select_members = jax.jit(select_members)
