@@ -348,6 +348,9 @@ def select_members(mask: jax.Array, new: Params, old: Params) -> Params:
     }
 
 
+_select_members = jax.jit(select_members)
+
+
 def disagreement(mean: jax.Array) -> jax.Array:
     """MOReL's disagreement: the largest distance between two members' predictions, ``[B]``
     (``mean: [K, B, d]``)."""
@@ -358,6 +361,3 @@ def disagreement(mean: jax.Array) -> jax.Array:
 def max_std_norm(logvar: jax.Array) -> jax.Array:
     """MOPO's penalty ``max_k |std_k(s, a)|_2`` (``penalty_learned_var``), ``[B]``."""
     return jnp.sqrt(jnp.exp(logvar).sum(-1)).max(axis=0)
-
-
-_select_members = jax.jit(select_members)
